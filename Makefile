@@ -1,0 +1,34 @@
+# mvtn-exp: every target that needs Python depends on `install`, so each is one command on a fresh machine.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: help install run test test-all bench clean
+
+help:  ## list targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet torch==2.13.0
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+install: $(STAMP)  ## create .venv: torch==2.13.0 first (CPU build), then the package with test extras, editable
+
+run: install  ## render the embedded demo shape from 12 spherical views (outputs/render/...)
+	$(BIN)/mvtn-render input=builtin:torus views=12 layout=spherical image_size=128
+
+test: install  ## run the fast test suite (slow tests: make test-all)
+	$(BIN)/python -m pytest -q
+
+test-all: install  ## run every test, slow ones included
+	$(BIN)/python -m pytest -q -m ''
+
+bench: install  ## renderer speed/memory benchmark; prints a Markdown table, writes outputs/bench/
+	$(BIN)/mvtn-bench
+
+clean:  ## remove the virtual environment and caches (keeps outputs/)
+	rm -rf $(VENV) *.egg-info .pytest_cache

@@ -1,0 +1,97 @@
+"""Cameras: view-points u = (azimuth, elevation, distance) -> analytic camera frames and projection.
+
+Conventions (see ../shared/DESIGN.md): world is Y-up; angles are degrees; azimuth turns about +Y
+starting at +Z towards +X; elevation lifts from the XZ plane towards +Y. The camera sits at
+``dist * (cos e sin a, sin e, cos e cos a)`` and looks at the origin.
+
+The frame is built analytically (no look-at with a fixed up vector), so elevation exactly +-90
+degrees and beyond is smooth and finite:
+
+    right   = ( cos a,         0,      -sin a       )
+    forward = (-cos e sin a,  -sin e,  -cos e cos a )   (unit vector towards the origin)
+    up      = right x forward = (-sin e sin a, cos e, -sin e cos a)
+
+Camera coordinates of a world point p: x = right.(p - c), y = up.(p - c), z = forward.(p - c)
+(z is the depth in front of the camera). Normalised device coordinates (NDC) have x to the right
+and y up, in [-1, 1] across the image: perspective ``x / (z tan(fov/2))``, orthographic
+``x / ortho_scale``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class Cameras:
+    """A batch of B x M cameras looking at the origin.
+
+    azim, elev, dist: ``[B, M]`` tensors, degrees / degrees / world units.
+    fov: vertical = horizontal field of view in degrees (perspective only).
+    orthographic: if True, NDC = camera xy / ortho_scale (distance changes depth only).
+    """
+
+    azim: torch.Tensor
+    elev: torch.Tensor
+    dist: torch.Tensor
+    fov: float = 60.0
+    orthographic: bool = False
+    ortho_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        shapes = {tuple(t.shape) for t in (self.azim, self.elev, self.dist)}
+        if len(shapes) != 1 or self.azim.dim() != 2:
+            raise ValueError(
+                "cameras: azim, elev and dist must share one shape [B, M]; got "
+                f"{[tuple(t.shape) for t in (self.azim, self.elev, self.dist)]}"
+            )
+        if not (0.0 < self.fov < 180.0):
+            raise ValueError(f"cameras: fov must be in (0, 180) degrees, got {self.fov}")
+        if self.ortho_scale <= 0:
+            raise ValueError(f"cameras: ortho_scale must be > 0, got {self.ortho_scale}")
+
+    @property
+    def batch_shape(self) -> tuple[int, int]:
+        return tuple(self.azim.shape)  # type: ignore[return-value]
+
+    def frames(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotation and position. Returns R ``[B, M, 3, 3]`` (rows: right, up, forward) and C ``[B, M, 3]``."""
+        a = torch.deg2rad(self.azim)
+        e = torch.deg2rad(self.elev)
+        sa, ca, se, ce = torch.sin(a), torch.cos(a), torch.sin(e), torch.cos(e)
+        zero = torch.zeros_like(a)
+        right = torch.stack([ca, zero, -sa], -1)
+        up = torch.stack([-se * sa, ce, -se * ca], -1)
+        forward = torch.stack([-ce * sa, -se, -ce * ca], -1)
+        position = -forward * self.dist.unsqueeze(-1)
+        return torch.stack([right, up, forward], -2), position
+
+    def focal(self) -> float:
+        """NDC units per unit of (x / z) for perspective cameras."""
+        return 1.0 / math.tan(math.radians(self.fov) / 2.0)
+
+
+def to_camera(points: torch.Tensor, image_of_point: torch.Tensor, R: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
+    """World -> camera coordinates.
+
+    points: ``[N, 3]``; image_of_point: ``[N]`` long index into the flattened ``B*M`` views;
+    R: ``[B*M, 3, 3]``; C: ``[B*M, 3]``. Returns ``[N, 3]`` (x right, y up, z depth).
+    """
+    rel = points - C[image_of_point]
+    return torch.einsum("nij,nj->ni", R[image_of_point], rel)
+
+
+def camera_to_ndc(cam: torch.Tensor, cameras: Cameras, znear: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera coordinates ``[..., 3]`` -> NDC xy ``[..., 2]`` and depth ``[...]``.
+
+    Depth is clamped to ``znear`` inside the perspective divide only, so points behind the near
+    plane stay finite (callers cull them by their true depth).
+    """
+    z = cam[..., 2]
+    if cameras.orthographic:
+        xy = cam[..., :2] / cameras.ortho_scale
+    else:
+        xy = cam[..., :2] * (cameras.focal() / z.clamp(min=znear)).unsqueeze(-1)
+    return xy, z

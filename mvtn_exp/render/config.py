@@ -1,0 +1,113 @@
+"""Renderer settings: one dataclass, used both at run time and as the Hydra schema (group ``renderer``)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+MESH_MODES = ("hard", "soft")
+SHADINGS = ("flat", "smooth", "silhouette")
+LIGHTS = ("camera", "fixed", "random")
+COLORS = ("white", "fixed", "random")
+COMPOSITORS = ("alpha", "norm")
+
+
+@dataclass
+class RendererConfig:
+    """Settings of the multi-view renderer R.
+
+    Mesh: ``mode=hard`` renders the nearest face (K=1, no blur); ``mode=soft`` blends the
+    ``faces_per_pixel`` nearest faces within ``blur_radius`` (NDC; derived from ``sigma`` when
+    null) with SoftRas probabilities ``sigmoid(-d^2 / sigma)`` (d in NDC) and depth weights
+    ``exp(zinv / gamma)``. Lighting is Phong; ``light``/``color`` apply at evaluation,
+    ``train_light``/``train_color`` while training (the paper's recipe: random light and colour
+    while training, camera-relative light and white at test).
+    Points: white discs of ``point_radius`` (NDC) on ``background``, ``points_per_pixel`` nearest
+    in depth, composited front-to-back (``alpha``) or with normalised weights (``norm``).
+    """
+
+    image_size: int = 224
+    fov: float = 60.0
+    orthographic: bool = False
+    ortho_scale: float = 1.0
+    znear: float = 0.01
+    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # meshes
+    mode: str = "hard"
+    shading: str = "flat"
+    faces_per_pixel: int = 8
+    sigma: float = 1e-4
+    gamma: float = 1e-4
+    blur_radius: float | None = None
+    cull_backfaces: bool = False
+    light: str = "camera"
+    train_light: str = "random"
+    light_direction: list[float] = field(default_factory=lambda: [0.0, 1.0, 0.0])
+    color: str = "white"
+    train_color: str = "random"
+    object_color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
+    ambient: float = 0.3
+    diffuse: float = 0.7
+    specular: float = 0.2
+    shininess: float = 32.0
+    two_sided: bool = True
+    # points
+    point_radius: float = 0.02
+    points_per_pixel: int = 8
+    compositor: str = "alpha"
+    point_opacity: float = 1.0
+    # level of detail: simplify meshes to lod_faces_per_pixel * image_size^2 faces (cached)
+    lod: bool = False
+    lod_faces_per_pixel: float = 0.5
+    # search
+    tile_size: int = 32
+    max_candidates: int = 1 << 24
+
+    def validate(self) -> "RendererConfig":
+        def one_of(key, allowed):
+            if getattr(self, key) not in allowed:
+                raise ValueError(f"renderer.{key}={getattr(self, key)!r}: expected one of {list(allowed)}")
+
+        one_of("mode", MESH_MODES)
+        one_of("shading", SHADINGS)
+        one_of("light", LIGHTS)
+        one_of("train_light", LIGHTS)
+        one_of("color", COLORS)
+        one_of("train_color", COLORS)
+        one_of("compositor", COMPOSITORS)
+        checks = {
+            "image_size": self.image_size >= 1,
+            "faces_per_pixel": self.faces_per_pixel >= 1,
+            "points_per_pixel": self.points_per_pixel >= 1,
+            "sigma": self.sigma > 0,
+            "gamma": self.gamma > 0,
+            "point_radius": self.point_radius > 0,
+            "znear": self.znear > 0,
+            "tile_size": self.tile_size >= 1,
+            "max_candidates": self.max_candidates >= 1,
+            "lod_faces_per_pixel": self.lod_faces_per_pixel > 0,
+            "point_opacity": 0 < self.point_opacity <= 1,
+        }
+        for key, ok in checks.items():
+            if not ok:
+                raise ValueError(f"renderer.{key}={getattr(self, key)!r} is out of range")
+        for key in ("background", "light_direction", "object_color"):
+            if len(getattr(self, key)) != 3:
+                raise ValueError(f"renderer.{key} must have 3 entries, got {getattr(self, key)}")
+        if self.blur_radius is not None and self.blur_radius < 0:
+            raise ValueError(f"renderer.blur_radius must be >= 0 or null, got {self.blur_radius}")
+        return self
+
+    @property
+    def soft(self) -> bool:
+        return self.mode == "soft"
+
+    def effective_blur(self) -> float:
+        """Blur radius (NDC) of soft mode: where sigmoid(-d^2/sigma) falls to 1e-4, capped at the screen diagonal."""
+        if not self.soft:
+            return 0.0
+        r = self.blur_radius if self.blur_radius is not None else math.sqrt(self.sigma * math.log(1e4 - 1))
+        return min(r, 2 * math.sqrt(2.0))
+
+    def effective_k(self) -> int:
+        """Faces per pixel actually searched: 1 when nothing is blurred (no K>1 work without blur)."""
+        return self.faces_per_pixel if self.soft and self.effective_blur() > 0 else 1

@@ -1,0 +1,179 @@
+"""Mesh rasterizer: K nearest faces per pixel (no autograd), then differentiable fragments.
+
+Search (``search_faces``): all faces of all views are projected at once; faces behind the near
+plane, outside the frustum, of zero screen area, and (optionally) back-facing are culled; the
+rest go through the tile search of ``tiles.py``. Only the winners are then recomputed with
+autograd (``face_fragments``): screen and perspective-correct barycentrics, depth and the signed
+squared distance used for soft edges. Backward memory therefore grows with pixels x K, not with
+pixels x faces.
+
+Faces crossing the near plane are culled, not clipped (documented limitation).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from . import tiles
+
+# far beyond any on-screen squared NDC distance: "no boundary edge near this pixel"
+FAR_SQ = 1.0e4
+
+
+@dataclass
+class ProjectedFaces:
+    """Faces of every view in screen space. Face-view index ``fv = face * M + view``.
+
+    xy: ``[F*M, 3, 2]`` NDC vertex positions (differentiable); z: ``[F*M, 3]`` depths;
+    image: ``[F*M]`` flat image index ``b * M + m``; alive: ``[F*M]`` bool (survived culling);
+    facing: ``[F*M]`` +1 front (counter-clockwise on screen), -1 back, 0 culled.
+    """
+
+    xy: torch.Tensor
+    z: torch.Tensor
+    image: torch.Tensor
+    alive: torch.Tensor
+    facing: torch.Tensor
+
+
+@dataclass
+class Fragments:
+    """Differentiable per-pixel data for the K winners of the active pixels.
+
+    pix: ``[P]`` flat pixel index; fv: ``[P, K]`` face-view index (-1 empty); valid: ``[P, K]``;
+    bary: ``[P, K, 3]`` perspective-correct barycentrics (None if not requested);
+    zbuf: ``[P, K]`` depth; dist: ``[P, K]`` signed squared NDC distance (None in hard mode).
+    """
+
+    pix: torch.Tensor
+    fv: torch.Tensor
+    valid: torch.Tensor
+    bary: torch.Tensor | None
+    zbuf: torch.Tensor | None
+    dist: torch.Tensor | None
+
+
+def _edge(ax, ay, bx, by, px, py):
+    """Twice the signed area of (a, b, p): positive when p is left of a->b."""
+    return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+
+
+def area_eps(dtype: torch.dtype, H: int, W: int) -> float:
+    """Smallest screen area (twice, NDC^2) treated as a real face: far below one pixel."""
+    return 1e-4 * 4.0 / (H * W) if dtype == torch.float32 else 1e-9 * 4.0 / (H * W)
+
+
+def cull(proj_xy: torch.Tensor, z: torch.Tensor, *, znear: float, margin: float, cull_backfaces: bool, H: int, W: int):
+    """Culling mask and facing sign for face-views. proj_xy ``[N, 3, 2]``, z ``[N, 3]``."""
+    with torch.no_grad():
+        x, y = proj_xy[..., 0], proj_xy[..., 1]
+        area2 = _edge(x[:, 0], y[:, 0], x[:, 1], y[:, 1], x[:, 2], y[:, 2])
+        alive = (z >= znear).all(1)
+        alive &= area2.abs() > area_eps(proj_xy.dtype, H, W)
+        alive &= (x.min(1).values <= 1 + margin) & (x.max(1).values >= -1 - margin)
+        alive &= (y.min(1).values <= 1 + margin) & (y.max(1).values >= -1 - margin)
+        if cull_backfaces:
+            alive &= area2 > 0
+        facing = torch.where(alive, torch.sign(area2), torch.zeros_like(area2)).to(torch.int8)
+    return alive, facing
+
+
+def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int) -> tiles.Selection:
+    """K nearest faces per pixel among faces whose triangle is within ``blur_radius`` (NDC)."""
+    with torch.no_grad():
+        fv = torch.nonzero(pf.alive).squeeze(1)
+        xy = pf.xy.detach()[fv]
+        zinv = 1.0 / pf.z.detach()[fv]
+        x, y = xy[..., 0], xy[..., 1]
+        boxes = tiles.pixel_boxes(
+            x.min(1).values - blur_radius, x.max(1).values + blur_radius,
+            y.min(1).values - blur_radius, y.max(1).values + blur_radius,
+            pf.image[fv], H, W,
+        )
+        area2 = _edge(x[:, 0], y[:, 0], x[:, 1], y[:, 1], x[:, 2], y[:, 2])
+        num_pixels = int(pf.image.max()) + 1 if len(pf.image) else 0
+        num_pixels *= H * W
+        picks = []
+        for c, pix in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates):
+            px, py = tiles.pixel_centres(pix, H, W, xy.dtype)
+            fx, fy = x[c], y[c]
+            a = area2[c]
+            l0 = _edge(fx[:, 1], fy[:, 1], fx[:, 2], fy[:, 2], px, py) / a
+            l1 = _edge(fx[:, 2], fy[:, 2], fx[:, 0], fy[:, 0], px, py) / a
+            l2 = _edge(fx[:, 0], fy[:, 0], fx[:, 1], fy[:, 1], px, py) / a
+            lam = torch.stack([l0, l1, l2], 1)
+            inside = (lam >= 0).all(1)
+            if blur_radius > 0:
+                near = inside | (point_triangle_sqdist(fx, fy, px, py) <= blur_radius**2)
+                keep = torch.nonzero(near).squeeze(1)
+                lam = lam[keep].clamp(min=0)
+                lam = lam / lam.sum(1, keepdim=True)
+            else:
+                keep = torch.nonzero(inside).squeeze(1)
+                lam = lam[keep]
+            depth = 1.0 / (lam * zinv[c[keep]]).sum(1).clamp(min=1e-12)
+            picks.append(tiles.select_nearest(pix[keep], depth, fv[c[keep]], K, num_pixels))
+        return tiles.merge(picks, K, pf.xy.device)
+
+
+def _segment_sqdist(ax, ay, bx, by, px, py):
+    """Squared distance from p to segment ab (all ``[...]``); safe for a == b."""
+    ex, ey = bx - ax, by - ay
+    ll = (ex * ex + ey * ey).clamp(min=1e-30)
+    t = (((px - ax) * ex + (py - ay) * ey) / ll).clamp(0, 1)
+    dx, dy = px - ax - t * ex, py - ay - t * ey
+    return dx * dx + dy * dy
+
+
+def edge_sqdists(fx, fy, px, py) -> torch.Tensor:
+    """Squared distances to the three edges (v1v2, v2v0, v0v1), stacked on the last dim."""
+    return torch.stack([
+        _segment_sqdist(fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2], px, py),
+        _segment_sqdist(fx[..., 2], fy[..., 2], fx[..., 0], fy[..., 0], px, py),
+        _segment_sqdist(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], px, py),
+    ], -1)
+
+
+def point_triangle_sqdist(fx, fy, px, py) -> torch.Tensor:
+    return edge_sqdists(fx, fy, px, py).min(-1).values
+
+
+def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, need_bary: bool,
+                   need_dist: bool, interior_edge: torch.Tensor | None) -> Fragments:
+    """Differentiable barycentrics / depth / signed distance for the selected (pixel, face) pairs.
+
+    interior_edge: ``[F*M, 3]`` bool, True where an edge is shared with a neighbour facing the same
+    way in that view; such edges are ignored by the inside distance (no wireframe in soft
+    silhouettes: the coverage of a closed surface does not dip at its internal edges).
+    """
+    valid = sel.prim >= 0
+    fv = sel.prim.clamp(min=0)
+    px, py = tiles.pixel_centres(sel.pix, H, W, pf.xy.dtype)
+    px, py = px[:, None], py[:, None]
+    xy = pf.xy[fv]  # [P, K, 3, 2]
+    fx, fy = xy[..., 0], xy[..., 1]
+    a = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2])
+    a = torch.where(a.abs() > 1e-30, a, torch.ones_like(a))  # empty slots only (real faces: culled if ~0)
+    l0 = _edge(fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2], px, py) / a
+    l1 = _edge(fx[..., 2], fy[..., 2], fx[..., 0], fy[..., 0], px, py) / a
+    l2 = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], px, py) / a
+    lam = torch.stack([l0, l1, l2], -1)
+    with torch.no_grad():
+        inside = (lam >= 0).all(-1)
+    dist = None
+    if need_dist:
+        d = edge_sqdists(fx, fy, px, py)
+        outside_d = d.min(-1).values
+        if interior_edge is not None:
+            d = torch.where(interior_edge[fv], torch.full_like(d, FAR_SQ), d)
+        dist = torch.where(inside, -d.min(-1).values, outside_d)
+        dist = torch.where(valid, dist, torch.full_like(dist, FAR_SQ))
+    # outside the triangle (soft edges) attributes come from the nearest point of the triangle
+    lam = torch.where(inside.unsqueeze(-1), lam, lam.clamp(min=0))
+    lam = lam / lam.sum(-1, keepdim=True).clamp(min=1e-12)
+    zinv = lam / pf.z[fv].clamp(min=1e-12)
+    zsum = zinv.sum(-1).clamp(min=1e-12)
+    zbuf = torch.where(valid, 1.0 / zsum, torch.zeros_like(zsum))
+    bary = zinv / zsum.unsqueeze(-1) if need_bary else None
+    return Fragments(sel.pix, sel.prim, valid, bary, zbuf, dist)

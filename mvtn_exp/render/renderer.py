@@ -1,0 +1,202 @@
+"""MultiViewRenderer R: a batch of B shapes and views ``[B, M]`` -> images ``[B, M, 3, H, W]``.
+
+Differentiable with respect to azimuth, elevation, distance and vertex / point positions.
+Only what the settings need is computed: no normals or lights for silhouettes, no K > 1 search
+without blur, no barycentrics for flat shading, nothing for pixels no primitive reaches.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from ..data.shapes import Meshes, PointClouds
+from . import lod, mesh_raster, point_raster, shading
+from .cameras import Cameras, camera_to_ndc, to_camera
+from .config import RendererConfig
+from .topology import edge_neighbours
+
+
+@dataclass
+class RenderOutput:
+    """images ``[B, M, 3, H, W]`` in [0, 1]; alpha ``[B, M, 1, H, W]`` coverage; stats: counters."""
+
+    images: torch.Tensor
+    alpha: torch.Tensor
+    stats: dict
+
+
+class MultiViewRenderer(nn.Module):
+    """The renderer R of MVTN (no learnable parameters).
+
+    ``forward(shapes, azim, elev, dist)``: shapes is a ``Meshes`` or ``PointClouds`` batch of B;
+    azim, elev in degrees and dist in world units, each ``[B, M]`` (dist may be a float).
+    In ``train()`` mode lights and colours follow ``train_light``/``train_color`` (random draws use
+    torch's global generator, so they are seeded with the run), in ``eval()`` ``light``/``color``.
+    """
+
+    def __init__(self, cfg: RendererConfig | None = None, **overrides):
+        super().__init__()
+        cfg = cfg or RendererConfig()
+        if overrides:
+            cfg = RendererConfig(**{**cfg.__dict__, **overrides})
+        self.cfg = cfg.validate()
+        self.train(False)
+
+    # ---------------------------------------------------------------- public API
+    def forward(self, shapes, azim: torch.Tensor, elev: torch.Tensor, dist=2.2) -> RenderOutput:
+        if not torch.is_tensor(dist):
+            dist = torch.full_like(azim, float(dist))
+        if azim.dim() != 2:
+            raise ValueError(f"renderer: views must be [B, M], got azim {tuple(azim.shape)}")
+        if len(shapes) != azim.shape[0]:
+            raise ValueError(f"renderer: {len(shapes)} shapes but views for {azim.shape[0]} (azim {tuple(azim.shape)})")
+        if isinstance(shapes, Meshes):
+            return self._render_meshes(shapes, azim, elev, dist)
+        if isinstance(shapes, PointClouds):
+            return self._render_points(shapes, azim, elev, dist)
+        raise TypeError(f"renderer: expected Meshes or PointClouds, got {type(shapes).__name__}")
+
+    # ---------------------------------------------------------------- shared helpers
+    def _cameras(self, azim, elev, dist) -> Cameras:
+        c = self.cfg
+        return Cameras(azim, elev, dist, fov=c.fov, orthographic=c.orthographic, ortho_scale=c.ortho_scale)
+
+    def _project(self, pts: torch.Tensor, shape_of: torch.Tensor, cams: Cameras, R, C):
+        """``[N, 3]`` world points of shapes ``shape_of`` -> per (point, view) NDC xy ``[N*M, 2]``, depth, image."""
+        M = cams.azim.shape[1]
+        image = (shape_of[:, None] * M + torch.arange(M, device=pts.device)).reshape(-1)
+        world = pts[:, None, :].expand(-1, M, -1).reshape(-1, 3)
+        xy, z = camera_to_ndc(to_camera(world, image, R, C), cams, self.cfg.znear)
+        return xy, z, image
+
+    def _background(self, ref: torch.Tensor) -> torch.Tensor:
+        return torch.tensor(self.cfg.background, dtype=ref.dtype, device=ref.device)
+
+    def _compose(self, pix, rgb, alpha, B, M, H, W, ref) -> tuple[torch.Tensor, torch.Tensor]:
+        """Scatter active-pixel rgb ``[P, 3]`` and alpha ``[P]`` into dense images."""
+        n = B * M * H * W
+        img = self._background(ref).expand(n, 3).index_put((pix,), rgb)
+        a = torch.zeros(n, dtype=ref.dtype, device=ref.device).index_put((pix,), alpha)
+        return (img.view(B, M, H, W, 3).permute(0, 1, 4, 2, 3), a.view(B, M, 1, H, W))
+
+    def _light_dirs(self, B, M, C, ref) -> torch.Tensor:
+        """Unit vectors towards the light, ``[B*M, 3]`` world."""
+        mode = self.cfg.train_light if self.training else self.cfg.light
+        if mode == "camera":
+            return torch.nn.functional.normalize(C, dim=-1, eps=1e-12)
+        if mode == "fixed":
+            d = torch.tensor(self.cfg.light_direction, dtype=ref.dtype, device=ref.device)
+            return torch.nn.functional.normalize(d, dim=0, eps=1e-12).expand(B * M, 3)
+        d = torch.nn.functional.normalize(torch.randn(B, 3, dtype=ref.dtype).to(ref.device), dim=-1, eps=1e-12)
+        return d.repeat_interleave(M, 0)
+
+    def _shape_colors(self, B, ref) -> torch.Tensor:
+        mode = self.cfg.train_color if self.training else self.cfg.color
+        if mode == "white":
+            return torch.ones(B, 3, dtype=ref.dtype, device=ref.device)
+        if mode == "fixed":
+            return torch.tensor(self.cfg.object_color, dtype=ref.dtype, device=ref.device).expand(B, 3)
+        return (0.25 + 0.75 * torch.rand(B, 3, dtype=ref.dtype)).to(ref.device)
+
+    # ---------------------------------------------------------------- meshes
+    def _render_meshes(self, meshes: Meshes, azim, elev, dist) -> RenderOutput:
+        c = self.cfg
+        H = W = c.image_size
+        B, M = azim.shape
+        stats = {}
+        if c.lod:
+            before = int(meshes.faces_per_shape.sum())
+            meshes = lod.simplify_meshes(meshes, lod.face_budget(c.image_size, c.lod_faces_per_pixel))
+            stats["lod_faces"] = (before, int(meshes.faces_per_shape.sum()))
+        verts = meshes.verts
+        cams = self._cameras(azim.to(verts.dtype), elev.to(verts.dtype), dist.to(verts.dtype))
+        R, C = (t.reshape(B * M, *t.shape[2:]) for t in cams.frames())
+        xy, z, _ = self._project(verts, meshes.shape_of_vert(), cams, R, C)
+        ar = torch.arange(M, device=verts.device)
+        fvv = (meshes.faces[:, None, :] * M + ar[None, :, None]).reshape(-1, 3)  # [F*M, 3] vertex-view ids
+        f_image = (meshes.shape_of_face()[:, None] * M + ar).reshape(-1)
+        blur = c.effective_blur()
+        K = c.effective_k()
+        pxy, pz = xy[fvv], z[fvv]
+        alive, facing = mesh_raster.cull(pxy, pz, znear=c.znear, margin=blur, cull_backfaces=c.cull_backfaces, H=H, W=W)
+        pf = mesh_raster.ProjectedFaces(pxy, pz, f_image, alive, facing)
+        sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates)
+        stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix))
+        interior = None
+        if c.soft:
+            interior = self._interior_edges(meshes.faces, facing, M)
+        frag = mesh_raster.face_fragments(pf, sel, H=H, W=W, need_bary=c.shading == "smooth", need_dist=c.soft, interior_edge=interior)
+        if c.shading == "silhouette":
+            if c.soft:
+                alpha = shading.coverage(frag.dist, frag.valid, c.sigma)
+            else:
+                alpha = frag.valid[:, 0].to(verts.dtype)
+            bg = self._background(verts)
+            rgb = alpha[:, None] + (1 - alpha[:, None]) * bg
+        else:
+            colors = self._face_colors(meshes, frag, B, M, C)
+            if c.soft:
+                img_of_pix = frag.pix // (H * W)
+                d = dist.reshape(-1).to(verts.dtype)[img_of_pix]
+                zfar, znear = d + 1.0, (d - 1.0).clamp(min=c.znear)
+                rgb, alpha = shading.softmax_blend(colors, frag.dist, frag.zbuf, frag.valid, zfar, znear, self._background(verts), sigma=c.sigma, gamma=c.gamma)
+            else:
+                rgb, alpha = shading.hard_blend(colors, frag.valid)
+        images, alpha = self._compose(frag.pix, rgb, alpha, B, M, H, W, verts)
+        return RenderOutput(images, alpha, stats)
+
+    def _interior_edges(self, faces, facing, M) -> torch.Tensor:
+        """``[F*M, 3]`` True where the neighbour across an edge is alive and faces the same way."""
+        nb = edge_neighbours(faces)  # [F, 3]
+        nb_fv = (nb[:, None, :] * M + torch.arange(M, device=faces.device)[None, :, None]).reshape(-1, 3)
+        own = facing.unsqueeze(1)
+        other = facing[nb_fv.clamp(min=0)]
+        return (nb_fv >= 0) & (own != 0) & (other == own)
+
+    def _face_colors(self, meshes: Meshes, frag: mesh_raster.Fragments, B, M, C) -> torch.Tensor:
+        """Phong colour of every (active pixel, slot): ``[P, K, 3]``."""
+        c = self.cfg
+        verts, faces = meshes.verts, meshes.faces
+        f = frag.fv.clamp(min=0) // M
+        img = frag.fv.clamp(min=0) % M + meshes.shape_of_face()[f] * M
+        tri = verts[faces]  # [F, 3, 3]
+        fn = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+        if c.shading == "smooth":
+            vn = torch.zeros_like(verts).index_add(0, faces.reshape(-1), fn.repeat_interleave(3, 0))
+            normals = (frag.bary[..., None] * vn[faces[f]]).sum(-2)
+            points = (frag.bary[..., None] * tri[f]).sum(-2)
+        else:
+            normals = fn[f]
+            points = tri.mean(1)[f]
+        light = self._light_dirs(B, M, C, verts)[img]
+        albedo = self._shape_colors(B, verts)[img // M]
+        return shading.phong(normals, points, C[img], light, albedo, ambient=c.ambient, diffuse=c.diffuse,
+                             specular=c.specular, shininess=c.shininess, two_sided=c.two_sided)
+
+    # ---------------------------------------------------------------- points
+    def _render_points(self, clouds: PointClouds, azim, elev, dist) -> RenderOutput:
+        c = self.cfg
+        H = W = c.image_size
+        B, M = azim.shape
+        pts = clouds.points
+        cams = self._cameras(azim.to(pts.dtype), elev.to(pts.dtype), dist.to(pts.dtype))
+        R, C = (t.reshape(B * M, *t.shape[2:]) for t in cams.frames())
+        xy, z, image = self._project(pts, clouds.shape_of_point(), cams, R, C)
+        r = c.point_radius
+        with torch.no_grad():
+            alive = (z >= c.znear) & (xy.detach().abs() <= 1 + r).all(-1)
+        sel = point_raster.search_points(xy, z, image, alive, H=H, W=W, K=c.points_per_pixel, radius=r,
+                                         num_images=B * M, tile_size=c.tile_size, max_candidates=c.max_candidates)
+        d2, valid = point_raster.point_sqdist(xy, sel, H=H, W=W)
+        a = shading.point_alpha(d2, valid, r, c.point_opacity)
+        if clouds.colors is None:
+            colors = torch.ones(*a.shape, 3, dtype=pts.dtype, device=pts.device)
+        else:
+            colors = clouds.colors[sel.prim.clamp(min=0) // M]
+        bg = self._background(pts)
+        composite = shading.alpha_composite if c.compositor == "alpha" else shading.norm_weighted_composite
+        rgb, alpha = composite(a, colors, bg)
+        images, alpha = self._compose(sel.pix, rgb, alpha, B, M, H, W, pts)
+        return RenderOutput(images, alpha, {"points_alive": int(alive.sum()), "active_pixels": len(sel.pix)})

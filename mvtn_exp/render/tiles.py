@@ -1,0 +1,196 @@
+"""Screen tiles: primitives' pixel boxes -> (primitive, pixel) candidates -> K nearest per pixel.
+
+Shared by the mesh and the point rasterizer. Everything here runs without autograd: it only
+decides *which* primitives cover *which* pixels; callers recompute the differentiable quantities
+for the winners.
+
+How a scene is searched:
+1. each primitive (a face or point in one view) gives an inclusive pixel box, clipped to the image;
+   empty boxes (off-screen, between pixel centres) cost nothing after this step;
+2. candidates are the pixel centres inside each box, enumerated with ``repeat_interleave``;
+3. if the whole scene has more candidates than ``max_candidates``, primitives are binned into
+   ``tile_size`` square screen tiles (packed bins: a tile holds as many primitives as cover it, so
+   nothing is ever dropped) and processed in chunks of whole tiles, each under the budget; a
+   single tile over budget is processed alone and reported once with a warning;
+4. per pixel, the K candidates of smallest depth win (ties: smaller primitive index first).
+
+Pixel convention: image row i (top = 0), column j; pixel centre in NDC is
+``x = (2j + 1) / W - 1``, ``y = 1 - (2i + 1) / H``. Flat pixel index: ``(image * H + i) * W + j``.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Iterator
+
+import torch
+
+
+@dataclass
+class PixelBoxes:
+    """Inclusive pixel boxes of primitives. All ``[N]`` long; empty when ``j1 < j0`` or ``i1 < i0``."""
+
+    image: torch.Tensor
+    j0: torch.Tensor
+    j1: torch.Tensor
+    i0: torch.Tensor
+    i1: torch.Tensor
+
+    def sizes(self) -> torch.Tensor:
+        return (self.j1 - self.j0 + 1).clamp(min=0) * (self.i1 - self.i0 + 1).clamp(min=0)
+
+
+@dataclass
+class Selection:
+    """K nearest primitives for every pixel that has at least one.
+
+    pix: ``[P]`` flat pixel index; prim: ``[P, K]`` primitive index, -1 in unused slots.
+    """
+
+    pix: torch.Tensor
+    prim: torch.Tensor
+
+
+def pixel_boxes(xmin, xmax, ymin, ymax, image, H: int, W: int) -> PixelBoxes:
+    """NDC extents ``[N]`` -> inclusive pixel-centre index boxes clipped to the ``H x W`` image."""
+    j0 = torch.ceil(((xmin + 1) * W - 1) / 2).clamp(-1, W).long().clamp(min=0)
+    j1 = torch.floor(((xmax + 1) * W - 1) / 2).clamp(-1, W).long().clamp(max=W - 1)
+    i0 = torch.ceil(((1 - ymax) * H - 1) / 2).clamp(-1, H).long().clamp(min=0)
+    i1 = torch.floor(((1 - ymin) * H - 1) / 2).clamp(-1, H).long().clamp(max=H - 1)
+    return PixelBoxes(image, j0, j1, i0, i1)
+
+
+def pixel_centres(pix: torch.Tensor, H: int, W: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat pixel index ``[N]`` -> NDC centre x, y ``[N]``."""
+    j = pix % W
+    i = (pix // W) % H
+    x = (2 * j + 1).to(dtype) / W - 1
+    y = 1 - (2 * i + 1).to(dtype) / H
+    return x, y
+
+
+def _enumerate(boxes: PixelBoxes, prim: torch.Tensor, H: int, W: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """All pixel centres in the boxes of ``prim`` -> (primitive index, flat pixel index), both ``[C]``."""
+    w = (boxes.j1[prim] - boxes.j0[prim] + 1).clamp(min=0)
+    n = w * (boxes.i1[prim] - boxes.i0[prim] + 1).clamp(min=0)
+    owner = torch.repeat_interleave(torch.arange(len(prim), device=prim.device), n)
+    start = torch.cumsum(n, 0) - n
+    local = torch.arange(len(owner), device=prim.device) - start[owner]
+    wo = w[owner]
+    p = prim[owner]
+    pix = (boxes.image[p] * H + boxes.i0[p] + local // wo) * W + boxes.j0[p] + local % wo
+    return p, pix
+
+
+def _split_box_by_tiles(boxes: PixelBoxes, prim: torch.Tensor, tile: int, H: int, W: int):
+    """Bin primitives into tiles. Returns per (primitive, tile) pair: a PixelBoxes clipped to the
+    tile, the primitive index and the global tile id; pairs sorted by tile (stable)."""
+    ty0, ty1 = boxes.i0[prim] // tile, boxes.i1[prim] // tile
+    tx0, tx1 = boxes.j0[prim] // tile, boxes.j1[prim] // tile
+    ntx = (W + tile - 1) // tile
+    nty = (H + tile - 1) // tile
+    wt = tx1 - tx0 + 1
+    n = wt * (ty1 - ty0 + 1)
+    owner = torch.repeat_interleave(torch.arange(len(prim), device=prim.device), n)
+    local = torch.arange(len(owner), device=prim.device) - (torch.cumsum(n, 0) - n)[owner]
+    ty = ty0[owner] + local // wt[owner]
+    tx = tx0[owner] + local % wt[owner]
+    p = prim[owner]
+    tile_id = (boxes.image[p] * nty + ty) * ntx + tx
+    order = torch.sort(tile_id, stable=True).indices
+    p, ty, tx, tile_id = p[order], ty[order], tx[order], tile_id[order]
+    clipped = PixelBoxes(
+        boxes.image[p],
+        torch.maximum(boxes.j0[p], tx * tile), torch.minimum(boxes.j1[p], tx * tile + tile - 1),
+        torch.maximum(boxes.i0[p], ty * tile), torch.minimum(boxes.i1[p], ty * tile + tile - 1),
+    )
+    return clipped, p, tile_id
+
+
+_warned_tile_budget = False
+
+
+def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_candidates: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """Yield ``(prim, pix)`` candidate chunks; every pixel's candidates lie in exactly one chunk."""
+    global _warned_tile_budget
+    sizes = boxes.sizes()
+    prim = torch.nonzero(sizes > 0).squeeze(1)
+    if len(prim) == 0:
+        return
+    total = int(sizes[prim].sum())
+    if total <= max_candidates:
+        yield _enumerate(boxes, prim, H, W)
+        return
+    tiles, owner, tile_id = _split_box_by_tiles(boxes, prim, tile_size, H, W)
+    pair_sizes = tiles.sizes()
+    # candidates per tile (tiles are contiguous after the sort)
+    uniq, counts = torch.unique_consecutive(tile_id, return_counts=True)
+    pair_end = torch.cumsum(counts, 0)
+    tile_cands = torch.zeros(len(uniq), dtype=torch.long, device=prim.device)
+    tile_cands.index_add_(0, torch.repeat_interleave(torch.arange(len(uniq), device=prim.device), counts), pair_sizes)
+    if int(tile_cands.max()) > max_candidates and not _warned_tile_budget:
+        _warned_tile_budget = True
+        warnings.warn(
+            f"renderer: one {tile_size}px tile holds {int(tile_cands.max())} candidates, over the chunk budget "
+            f"max_candidates={max_candidates}; it is processed alone (budget grown, nothing dropped). "
+            "Lower tile_size or raise max_candidates to silence this.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    cum = torch.cumsum(tile_cands, 0).tolist()
+    pair_end = pair_end.tolist()
+    start_tile, start_pair, base = 0, 0, 0
+    for t in range(len(cum)):
+        last = t == len(cum) - 1
+        if last or cum[t + 1] - base > max_candidates:
+            sel = torch.arange(start_pair, pair_end[t], device=prim.device)
+            p, pix = _enumerate(tiles, sel, H, W)
+            yield owner[p], pix
+            start_tile, start_pair, base = t + 1, pair_end[t], cum[t]
+
+
+def select_nearest(pix: torch.Tensor, depth: torch.Tensor, prim: torch.Tensor, K: int, num_pixels: int) -> Selection:
+    """K smallest-depth candidates per pixel (ties: smaller ``prim`` first).
+
+    pix, depth, prim: ``[C]`` candidates (``depth > 0``), enumerated in ascending ``prim`` order
+    within each pixel. Returns a Selection over the pixels with at least one candidate.
+    """
+    device = pix.device
+    if len(pix) == 0:
+        return Selection(torch.zeros(0, dtype=torch.long, device=device), torch.zeros(0, K, dtype=torch.long, device=device))
+    if K == 1:
+        zmin = torch.full((num_pixels,), float("inf"), dtype=depth.dtype, device=device)
+        zmin.scatter_reduce_(0, pix, depth, "amin")
+        win = depth == zmin[pix]
+        best = torch.full((num_pixels,), torch.iinfo(torch.long).max, dtype=torch.long, device=device)
+        best.scatter_reduce_(0, pix[win], prim[win], "amin")
+        active = torch.nonzero(best != torch.iinfo(torch.long).max).squeeze(1)
+        return Selection(active, best[active].unsqueeze(1))
+    if depth.dtype == torch.float32:
+        # positive float32 bit patterns sort like the floats: one int64 key (pixel, depth)
+        key = (pix << 32) | depth.contiguous().view(torch.int32).long()
+        order = torch.sort(key, stable=True).indices
+    else:
+        order = torch.sort(depth, stable=True).indices
+        order = order[torch.sort(pix[order], stable=True).indices]
+    sp = pix[order]
+    first = torch.ones_like(sp, dtype=torch.bool)
+    first[1:] = sp[1:] != sp[:-1]
+    idx = torch.arange(len(sp), device=device)
+    seg_start = torch.where(first, idx, torch.zeros_like(idx)).cummax(0).values
+    rank = idx - seg_start
+    keep = rank < K
+    seg = torch.cumsum(first.long(), 0) - 1
+    active = sp[first]
+    out = torch.full((len(active), K), -1, dtype=torch.long, device=device)
+    out[seg[keep], rank[keep]] = prim[order[keep]]
+    return Selection(active, out)
+
+
+def merge(selections: list[Selection], K: int, device) -> Selection:
+    """Concatenate chunk selections (chunks never share a pixel)."""
+    if not selections:
+        return Selection(torch.zeros(0, dtype=torch.long, device=device), torch.zeros(0, K, dtype=torch.long, device=device))
+    if len(selections) == 1:
+        return selections[0]
+    return Selection(torch.cat([s.pix for s in selections]), torch.cat([s.prim for s in selections]))

@@ -1,0 +1,34 @@
+"""Mesh topology used by the renderer: the neighbour of each face across each of its edges."""
+from __future__ import annotations
+
+import torch
+
+
+def edge_neighbours(faces: torch.Tensor) -> torch.Tensor:
+    """Neighbour face across each edge. faces ``[F, 3]`` (global vertex indices) -> ``[F, 3]`` long.
+
+    Edge i of a face is the one opposite vertex i: (v1, v2), (v2, v0), (v0, v1). -1 where the edge
+    is a border. On non-manifold edges (three or more faces) faces are paired in index order.
+    """
+    F_ = len(faces)
+    out = torch.full((F_, 3), -1, dtype=torch.long, device=faces.device)
+    if F_ == 0:
+        return out
+    a = faces[:, [1, 2, 0]].reshape(-1)
+    b = faces[:, [2, 0, 1]].reshape(-1)
+    lo, hi = torch.minimum(a, b), torch.maximum(a, b)
+    key = lo * (int(faces.max()) + 1) + hi
+    order = torch.sort(key, stable=True).indices
+    k = key[order]
+    same = k[1:] == k[:-1]
+    # pair consecutive equal keys, starting at the first of each run: (0,1), (2,3), ...
+    run_start = torch.ones(len(k), dtype=torch.bool, device=faces.device)
+    run_start[1:] = ~same
+    idx = torch.arange(len(k), device=faces.device)
+    pos_in_run = idx - torch.where(run_start, idx, torch.zeros_like(idx)).cummax(0).values
+    left = torch.nonzero(same & (pos_in_run[:-1] % 2 == 0)).squeeze(1)
+    e1, e2 = order[left], order[left + 1]
+    flat = out.view(-1)
+    flat[e1] = e2 // 3
+    flat[e2] = e1 // 3
+    return out
