@@ -12,7 +12,8 @@ degrees and beyond is smooth and finite:
     up      = right x forward = (-sin e sin a, cos e, -sin e cos a)
 
 Camera coordinates of a world point p: x = right.(p - c), y = up.(p - c), z = forward.(p - c)
-(z is the depth in front of the camera). Normalised device coordinates (NDC) have x to the right
+(z is the depth in front of the camera). The rows (right, up, forward) form an orthonormal,
+left-handed screen frame (det = -1) at every azimuth and elevation. Normalised device coordinates (NDC) have x to the right
 and y up, in [-1, 1] across the image: perspective ``x / (z tan(fov/2))``, orthographic
 ``x / ortho_scale``.
 """

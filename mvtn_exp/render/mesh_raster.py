@@ -80,7 +80,11 @@ def cull(proj_xy: torch.Tensor, z: torch.Tensor, *, znear: float, margin: float,
 
 
 def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int) -> tiles.Selection:
-    """K nearest faces per pixel among faces whose triangle is within ``blur_radius`` (NDC)."""
+    """K nearest faces per pixel among faces whose triangle is within ``blur_radius`` (NDC).
+
+    Faces covering the pixel rank before faces that are only within the blur radius (each group
+    by depth), so blur never evicts the surface that is actually there.
+    """
     with torch.no_grad():
         fv = torch.nonzero(pf.alive).squeeze(1)
         xy = pf.xy.detach()[fv]
@@ -104,16 +108,18 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
             l2 = _edge(fx[:, 0], fy[:, 0], fx[:, 1], fy[:, 1], px, py) / a
             lam = torch.stack([l0, l1, l2], 1)
             inside = (lam >= 0).all(1)
+            outside = None
             if blur_radius > 0:
                 near = inside | (point_triangle_sqdist(fx, fy, px, py) <= blur_radius**2)
                 keep = torch.nonzero(near).squeeze(1)
                 lam = lam[keep].clamp(min=0)
                 lam = lam / lam.sum(1, keepdim=True)
+                outside = ~inside[keep]
             else:
                 keep = torch.nonzero(inside).squeeze(1)
                 lam = lam[keep]
             depth = 1.0 / (lam * zinv[c[keep]]).sum(1).clamp(min=1e-12)
-            picks.append(tiles.select_nearest(pix[keep], depth, fv[c[keep]], K, num_pixels))
+            picks.append(tiles.select_nearest(pix[keep], depth, fv[c[keep]], K, num_pixels, outside))
         return tiles.merge(picks, K, pf.xy.device)
 
 

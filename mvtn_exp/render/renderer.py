@@ -111,17 +111,10 @@ class MultiViewRenderer(nn.Module):
             meshes = lod.simplify_meshes(meshes, lod.face_budget(c.image_size, c.lod_faces_per_pixel))
             stats["lod_faces"] = (before, int(meshes.faces_per_shape.sum()))
         verts = meshes.verts
-        cams = self._cameras(azim.to(verts.dtype), elev.to(verts.dtype), dist.to(verts.dtype))
-        R, C = (t.reshape(B * M, *t.shape[2:]) for t in cams.frames())
-        xy, z, _ = self._project(verts, meshes.shape_of_vert(), cams, R, C)
-        ar = torch.arange(M, device=verts.device)
-        fvv = (meshes.faces[:, None, :] * M + ar[None, :, None]).reshape(-1, 3)  # [F*M, 3] vertex-view ids
-        f_image = (meshes.shape_of_face()[:, None] * M + ar).reshape(-1)
         blur = c.effective_blur()
         K = c.effective_k()
-        pxy, pz = xy[fvv], z[fvv]
-        alive, facing = mesh_raster.cull(pxy, pz, znear=c.znear, margin=blur, cull_backfaces=c.cull_backfaces, H=H, W=W)
-        pf = mesh_raster.ProjectedFaces(pxy, pz, f_image, alive, facing)
+        pf, cams, C = self.project_faces(meshes, azim, elev, dist)
+        alive, facing = pf.alive, pf.facing
         sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates)
         stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix))
         interior = None
@@ -146,6 +139,24 @@ class MultiViewRenderer(nn.Module):
                 rgb, alpha = shading.hard_blend(colors, frag.valid)
         images, alpha = self._compose(frag.pix, rgb, alpha, B, M, H, W, verts)
         return RenderOutput(images, alpha, stats)
+
+    def project_faces(self, meshes: Meshes, azim, elev, dist):
+        """Project and cull all faces for all views -> (ProjectedFaces, Cameras, camera centres ``[B*M, 3]``)."""
+        c = self.cfg
+        B, M = azim.shape
+        verts = meshes.verts
+        if not torch.is_tensor(dist):
+            dist = torch.full_like(azim, float(dist))
+        cams = self._cameras(azim.to(verts.dtype), elev.to(verts.dtype), dist.to(verts.dtype))
+        R, C = (t.reshape(B * M, *t.shape[2:]) for t in cams.frames())
+        xy, z, _ = self._project(verts, meshes.shape_of_vert(), cams, R, C)
+        ar = torch.arange(M, device=verts.device)
+        fvv = (meshes.faces[:, None, :] * M + ar[None, :, None]).reshape(-1, 3)  # [F*M, 3] vertex-view ids
+        f_image = (meshes.shape_of_face()[:, None] * M + ar).reshape(-1)
+        pxy, pz = xy[fvv], z[fvv]
+        alive, facing = mesh_raster.cull(pxy, pz, znear=c.znear, margin=c.effective_blur(),
+                                         cull_backfaces=c.cull_backfaces, H=c.image_size, W=c.image_size)
+        return mesh_raster.ProjectedFaces(pxy, pz, f_image, alive, facing), cams, C
 
     def _interior_edges(self, faces, facing, M) -> torch.Tensor:
         """``[F*M, 3]`` True where the neighbour across an edge is alive and faces the same way."""

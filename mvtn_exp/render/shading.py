@@ -64,7 +64,7 @@ def softmax_blend(colors, dist, zbuf, valid, zfar, znear, background, *, sigma: 
     logit = torch.cat([logit, torch.zeros_like(logit[:, :1])], 1)
     w = torch.softmax(logit, 1)
     rgb = (w[:, :-1, None] * colors).sum(1) + w[:, -1:] * background
-    return rgb, coverage(dist, valid, sigma)
+    return rgb.clamp(0, 1), coverage(dist, valid, sigma)  # clamp: rounding can exceed 1 by an ulp
 
 
 def silhouette_blend(dist, valid, *, sigma: float):

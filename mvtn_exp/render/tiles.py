@@ -44,7 +44,7 @@ class PixelBoxes:
 class Selection:
     """K nearest primitives for every pixel that has at least one.
 
-    pix: ``[P]`` flat pixel index; prim: ``[P, K]`` primitive index, -1 in unused slots.
+    pix: ``[P]`` flat pixel index, ascending; prim: ``[P, K]`` primitive index, -1 in unused slots.
     """
 
     pix: torch.Tensor
@@ -139,26 +139,32 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
         )
     cum = torch.cumsum(tile_cands, 0).tolist()
     pair_end = pair_end.tolist()
-    start_tile, start_pair, base = 0, 0, 0
+    start_pair, base = 0, 0
     for t in range(len(cum)):
         last = t == len(cum) - 1
         if last or cum[t + 1] - base > max_candidates:
             sel = torch.arange(start_pair, pair_end[t], device=prim.device)
             p, pix = _enumerate(tiles, sel, H, W)
             yield owner[p], pix
-            start_tile, start_pair, base = t + 1, pair_end[t], cum[t]
+            start_pair, base = pair_end[t], cum[t]
 
 
-def select_nearest(pix: torch.Tensor, depth: torch.Tensor, prim: torch.Tensor, K: int, num_pixels: int) -> Selection:
+def select_nearest(pix: torch.Tensor, depth: torch.Tensor, prim: torch.Tensor, K: int, num_pixels: int,
+                   outside: torch.Tensor | None = None) -> Selection:
     """K smallest-depth candidates per pixel (ties: smaller ``prim`` first).
 
     pix, depth, prim: ``[C]`` candidates (``depth > 0``), enumerated in ascending ``prim`` order
-    within each pixel. Returns a Selection over the pixels with at least one candidate.
+    within each pixel. outside: optional ``[C]`` bool, True for candidates that only lie within the
+    blur radius of the pixel: they rank after every candidate that covers the pixel, so a blurred
+    neighbour never pushes a covering face out of the K slots. Returns a Selection over the pixels
+    with at least one candidate.
     """
     device = pix.device
     if len(pix) == 0:
         return Selection(torch.zeros(0, dtype=torch.long, device=device), torch.zeros(0, K, dtype=torch.long, device=device))
     if K == 1:
+        if outside is not None:
+            depth = torch.where(outside, depth + (depth.max() + 1), depth)
         zmin = torch.full((num_pixels,), float("inf"), dtype=depth.dtype, device=device)
         zmin.scatter_reduce_(0, pix, depth, "amin")
         win = depth == zmin[pix]
@@ -167,11 +173,15 @@ def select_nearest(pix: torch.Tensor, depth: torch.Tensor, prim: torch.Tensor, K
         active = torch.nonzero(best != torch.iinfo(torch.long).max).squeeze(1)
         return Selection(active, best[active].unsqueeze(1))
     if depth.dtype == torch.float32:
-        # positive float32 bit patterns sort like the floats: one int64 key (pixel, depth)
-        key = (pix << 32) | depth.contiguous().view(torch.int32).long()
-        order = torch.sort(key, stable=True).indices
+        # positive float32 bit patterns sort like the floats: one int64 key (pixel, outside, depth)
+        key = depth.contiguous().view(torch.int32).long()
+        if outside is not None:
+            key = key | (outside.long() << 32)
+        order = torch.sort((pix << 33) | key, stable=True).indices
     else:
         order = torch.sort(depth, stable=True).indices
+        if outside is not None:
+            order = order[torch.sort(outside[order].to(torch.uint8), stable=True).indices]
         order = order[torch.sort(pix[order], stable=True).indices]
     sp = pix[order]
     first = torch.ones_like(sp, dtype=torch.bool)
@@ -188,9 +198,11 @@ def select_nearest(pix: torch.Tensor, depth: torch.Tensor, prim: torch.Tensor, K
 
 
 def merge(selections: list[Selection], K: int, device) -> Selection:
-    """Concatenate chunk selections (chunks never share a pixel)."""
+    """Concatenate chunk selections (chunks never share a pixel), sorted by pixel."""
     if not selections:
         return Selection(torch.zeros(0, dtype=torch.long, device=device), torch.zeros(0, K, dtype=torch.long, device=device))
     if len(selections) == 1:
         return selections[0]
-    return Selection(torch.cat([s.pix for s in selections]), torch.cat([s.prim for s in selections]))
+    pix = torch.cat([s.pix for s in selections])
+    order = torch.argsort(pix)
+    return Selection(pix[order], torch.cat([s.prim for s in selections])[order])

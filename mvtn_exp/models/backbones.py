@@ -1,0 +1,258 @@
+"""The project's own 2D image backbones (no torchvision dependency).
+
+* ``resnet18`` / ``resnet34`` / ``resnet50``: ResNets written from scratch whose
+  ``state_dict`` keys and shapes are identical to torchvision's, so a torchvision
+  ``.pth`` file loads with ``load_state_dict(strict=True)``.
+* ``SmallCNN`` / ``small_cnn``: a fast CPU backbone for tests and quick experiments.
+
+Every model maps images ``[N, C, H, W] -> [N, num_classes]`` and exposes
+``feature_dim`` plus ``features(x) -> [N, feature_dim]`` (the pooled vector before ``fc``).
+Weights are only ever read from local files; nothing is downloaded.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Callable, Optional, Union
+
+import torch
+from torch import Tensor, nn
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+class _Backbone(nn.Module):
+    """Shared interface: ``features(x) -> [N, feature_dim]``, ``forward(x) = fc(features(x))``."""
+
+    feature_dim: int
+    in_channels: int
+    fc: nn.Linear
+
+    def _check_input(self, x: Tensor, min_size: int = 1) -> None:
+        if x.dim() != 4 or x.shape[1] != self.in_channels:
+            raise ValueError(f"{type(self).__name__} expects input [N, {self.in_channels}, H, W], "
+                             f"got {list(x.shape)}")
+        if min(x.shape[-2:]) < min_size:
+            raise ValueError(f"{type(self).__name__} needs H, W >= {min_size}, got {list(x.shape)}")
+
+    def forward(self, x: Tensor) -> Tensor:
+        """``[N, C, H, W] -> [N, num_classes]`` logits."""
+        return self.fc(self.features(x))
+
+
+def _init_weights(model: nn.Module) -> None:
+    """torchvision's ResNet init: kaiming-normal (fan_out, relu) convs, norm weight 1 / bias 0."""
+    for m in model.modules():
+        if isinstance(m, nn.Conv2d):
+            nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+        elif isinstance(m, (nn.BatchNorm2d, nn.GroupNorm)):
+            nn.init.constant_(m.weight, 1)
+            nn.init.constant_(m.bias, 0)
+
+
+def _conv(cin: int, cout: int, k: int, stride: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, kernel_size=k, stride=stride, padding=k // 2, bias=False)
+
+
+class BasicBlock(nn.Module):
+    """Two 3x3 convs + identity: ``[N, inplanes, H, W] -> [N, planes, H/stride, W/stride]``."""
+
+    expansion = 1
+
+    def __init__(self, inplanes: int, planes: int, stride: int = 1,
+                 downsample: Optional[nn.Module] = None) -> None:
+        super().__init__()
+        self.conv1 = _conv(inplanes, planes, 3, stride)
+        self.bn1 = nn.BatchNorm2d(planes)
+        self.relu = nn.ReLU(inplace=True)
+        self.conv2 = _conv(planes, planes, 3)
+        self.bn2 = nn.BatchNorm2d(planes)
+        self.downsample = downsample
+
+    def forward(self, x: Tensor) -> Tensor:
+        identity = x if self.downsample is None else self.downsample(x)
+        out = self.relu(self.bn1(self.conv1(x)))
+        out = self.bn2(self.conv2(out))
+        return self.relu(out + identity)
+
+
+class Bottleneck(nn.Module):
+    """1x1 -> 3x3 (strided, as torchvision "v1.5") -> 1x1:
+    ``[N, inplanes, H, W] -> [N, 4 * planes, H/stride, W/stride]``."""
+
+    expansion = 4
+
+    def __init__(self, inplanes: int, planes: int, stride: int = 1,
+                 downsample: Optional[nn.Module] = None) -> None:
+        super().__init__()
+        self.conv1 = _conv(inplanes, planes, 1)
+        self.bn1 = nn.BatchNorm2d(planes)
+        self.conv2 = _conv(planes, planes, 3, stride)
+        self.bn2 = nn.BatchNorm2d(planes)
+        self.conv3 = _conv(planes, planes * self.expansion, 1)
+        self.bn3 = nn.BatchNorm2d(planes * self.expansion)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample = downsample
+
+    def forward(self, x: Tensor) -> Tensor:
+        identity = x if self.downsample is None else self.downsample(x)
+        out = self.relu(self.bn1(self.conv1(x)))
+        out = self.relu(self.bn2(self.conv2(out)))
+        out = self.bn3(self.conv3(out))
+        return self.relu(out + identity)
+
+
+class ResNet(_Backbone):
+    """torchvision-compatible ResNet: ``[N, in_channels, H, W] -> [N, num_classes]``."""
+
+    def __init__(self, block: type, layers: list[int], num_classes: int = 1000,
+                 in_channels: int = 3) -> None:
+        super().__init__()
+        self.in_channels = in_channels
+        self.inplanes = 64
+        self.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
+        self.bn1 = nn.BatchNorm2d(64)
+        self.relu = nn.ReLU(inplace=True)
+        self.maxpool = nn.MaxPool2d(kernel_size=3, stride=2, padding=1)
+        self.layer1 = self._make_layer(block, 64, layers[0])
+        self.layer2 = self._make_layer(block, 128, layers[1], stride=2)
+        self.layer3 = self._make_layer(block, 256, layers[2], stride=2)
+        self.layer4 = self._make_layer(block, 512, layers[3], stride=2)
+        self.avgpool = nn.AdaptiveAvgPool2d((1, 1))
+        self.feature_dim = 512 * block.expansion
+        self.fc = nn.Linear(self.feature_dim, num_classes)
+        _init_weights(self)
+
+    def _make_layer(self, block: type, planes: int, blocks: int, stride: int = 1) -> nn.Sequential:
+        downsample = None
+        if stride != 1 or self.inplanes != planes * block.expansion:
+            downsample = nn.Sequential(_conv(self.inplanes, planes * block.expansion, 1, stride),
+                                       nn.BatchNorm2d(planes * block.expansion))
+        layers = [block(self.inplanes, planes, stride, downsample)]
+        self.inplanes = planes * block.expansion
+        layers += [block(self.inplanes, planes) for _ in range(1, blocks)]
+        return nn.Sequential(*layers)
+
+    def features(self, x: Tensor) -> Tensor:
+        """``[N, in_channels, H, W] -> [N, feature_dim]`` (global-average-pooled layer4)."""
+        self._check_input(x)
+        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))
+        x = self.layer4(self.layer3(self.layer2(self.layer1(x))))
+        return torch.flatten(self.avgpool(x), 1)
+
+
+class SmallCNN(_Backbone):
+    """Fast CPU backbone: 4 x (conv3x3-BN-ReLU-maxpool2) with widths w, 2w, 4w, 8w, then GAP.
+
+    ``[N, in_channels, H, W] -> [N, num_classes]`` for any H, W >= 16; ``feature_dim = 8 * width``.
+    """
+
+    def __init__(self, num_classes: int, in_channels: int = 3, width: int = 32) -> None:
+        super().__init__()
+        self.in_channels = in_channels
+        chans = [in_channels, width, 2 * width, 4 * width, 8 * width]
+        stages: list[nn.Module] = []
+        for cin, cout in zip(chans[:-1], chans[1:]):
+            stages += [_conv(cin, cout, 3), nn.BatchNorm2d(cout), nn.ReLU(inplace=True), nn.MaxPool2d(2)]
+        self.body = nn.Sequential(*stages)
+        self.avgpool = nn.AdaptiveAvgPool2d((1, 1))
+        self.feature_dim = chans[-1]
+        self.fc = nn.Linear(self.feature_dim, num_classes)
+        _init_weights(self)
+
+    def features(self, x: Tensor) -> Tensor:
+        """``[N, in_channels, H, W] -> [N, feature_dim]``."""
+        self._check_input(x, min_size=16)
+        return torch.flatten(self.avgpool(self.body(x)), 1)
+
+
+def _fmt(items: list[str], limit: int = 5) -> str:
+    more = f", ... (+{len(items) - limit} more)" if len(items) > limit else ""
+    return ", ".join(items[:limit]) + more
+
+
+def load_weights(model: nn.Module, path: PathLike) -> nn.Module:
+    """Load a local state_dict file (plain, or under a 'state_dict'/'model' key) into ``model``.
+
+    If only the classifier's output size differs (``fc.weight`` is ``[K', feature_dim]``), every
+    other tensor is loaded and ``model.fc`` keeps its fresh initialisation. Missing
+    ``*.num_batches_tracked`` buffers (old torchvision files) are tolerated.
+    Raises FileNotFoundError / ValueError naming the file and the offending keys.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"backbone weights file not found: '{path}'")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # corrupt file, pickle with non-tensor objects, ...
+        raise ValueError(f"could not read backbone weights from '{path}': {e}") from e
+    if isinstance(obj, Mapping):
+        for key in ("state_dict", "model"):
+            if isinstance(obj.get(key), Mapping):
+                obj = obj[key]
+                break
+    if not isinstance(obj, Mapping) or not all(isinstance(v, Tensor) for v in obj.values()):
+        raise ValueError(f"'{path}' does not hold a state_dict (a mapping of names to tensors)")
+    sd = dict(obj)
+    own = model.state_dict()
+    fw, own_fw = sd.get("fc.weight"), own.get("fc.weight")
+    if (fw is not None and own_fw is not None and fw.dim() == 2
+            and fw.shape[1] == own_fw.shape[1] and fw.shape[0] != own_fw.shape[0]):
+        sd["fc.weight"], sd["fc.bias"] = own["fc.weight"], own["fc.bias"]  # keep the fresh head
+    for k, v in own.items():
+        if k.endswith("num_batches_tracked") and k not in sd:
+            sd[k] = v
+    missing = [k for k in own if k not in sd]
+    unexpected = [k for k in sd if k not in own]
+    mismatched = [f"{k}: file {list(sd[k].shape)} vs model {list(v.shape)}"
+                  for k, v in own.items() if k in sd and sd[k].shape != v.shape]
+    if missing or unexpected or mismatched:
+        parts = [f"{name} ({len(keys)}): {_fmt(keys)}" for name, keys in
+                 (("missing keys", missing), ("unexpected keys", unexpected),
+                  ("shape mismatches", mismatched)) if keys]
+        raise ValueError(f"cannot load '{path}' into {type(model).__name__}: " + "; ".join(parts))
+    model.load_state_dict(sd, strict=True)
+    return model
+
+
+def _resnet(block: type, layers: list[int], num_classes: int, weights: Optional[PathLike],
+            in_channels: int) -> ResNet:
+    model = ResNet(block, layers, num_classes=num_classes, in_channels=in_channels)
+    return load_weights(model, weights) if weights is not None else model
+
+
+def resnet18(num_classes: int = 1000, weights: Optional[PathLike] = None, in_channels: int = 3) -> ResNet:
+    """ResNet-18, ``[N, 3, H, W] -> [N, num_classes]``, feature_dim 512."""
+    return _resnet(BasicBlock, [2, 2, 2, 2], num_classes, weights, in_channels)
+
+
+def resnet34(num_classes: int = 1000, weights: Optional[PathLike] = None, in_channels: int = 3) -> ResNet:
+    """ResNet-34, ``[N, 3, H, W] -> [N, num_classes]``, feature_dim 512."""
+    return _resnet(BasicBlock, [3, 4, 6, 3], num_classes, weights, in_channels)
+
+
+def resnet50(num_classes: int = 1000, weights: Optional[PathLike] = None, in_channels: int = 3) -> ResNet:
+    """ResNet-50, ``[N, 3, H, W] -> [N, num_classes]``, feature_dim 2048."""
+    return _resnet(Bottleneck, [3, 4, 6, 3], num_classes, weights, in_channels)
+
+
+def small_cnn(num_classes: int = 1000, weights: Optional[PathLike] = None, in_channels: int = 3,
+              width: int = 32) -> SmallCNN:
+    """SmallCNN, ``[N, 3, H, W] -> [N, num_classes]`` (H, W >= 16), feature_dim ``8 * width``."""
+    model = SmallCNN(num_classes, in_channels=in_channels, width=width)
+    return load_weights(model, weights) if weights is not None else model
+
+
+BACKBONES: dict[str, Callable[..., _Backbone]] = {
+    "resnet18": resnet18,
+    "resnet34": resnet34,
+    "resnet50": resnet50,
+    "small_cnn": small_cnn,
+}
+
+
+def build_backbone(name: str, num_classes: int, weights: Optional[PathLike] = None,
+                   in_channels: int = 3) -> _Backbone:
+    """Build a registered backbone by name: ``[N, in_channels, H, W] -> [N, num_classes]``."""
+    if name not in BACKBONES:
+        raise ValueError(f"unknown backbone {name!r}; allowed: {', '.join(sorted(BACKBONES))}")
+    return BACKBONES[name](num_classes=num_classes, weights=weights, in_channels=in_channels)

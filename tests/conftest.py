@@ -1,0 +1,47 @@
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real_samples"
+
+
+@pytest.fixture
+def real_samples() -> Path:
+    if not SHARED.is_dir():
+        pytest.skip(f"real samples not found at {SHARED} (../shared/data/real_samples beside the repo)")
+    return SHARED
+
+
+def icosphere(subdivisions: int, dtype=torch.float32):
+    import trimesh
+
+    from mvtn_exp.data.shapes import Meshes
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return Meshes.from_list([torch.tensor(s.vertices, dtype=dtype)], [torch.tensor(s.faces)])
+
+
+def box_mesh(dtype=torch.float32, extents=(1.2, 0.8, 0.5)):
+    import trimesh
+
+    from mvtn_exp.data.shapes import Meshes
+
+    b = trimesh.creation.box(extents=extents)
+    v = torch.tensor(b.vertices, dtype=dtype)
+    return Meshes.from_list([v], [torch.tensor(b.faces)])
+
+
+def random_triangles(n: int, seed: int, scale: float = 1.0, size: float = 0.5, dtype=torch.float64):
+    """n independent random triangles (overlapping, crossing tiles) around the origin."""
+    from mvtn_exp.data.shapes import Meshes
+
+    g = torch.Generator().manual_seed(seed)
+    centres = (torch.rand(n, 1, 3, generator=g, dtype=dtype) * 2 - 1) * scale
+    verts = (centres + (torch.rand(n, 3, 3, generator=g, dtype=dtype) * 2 - 1) * size).reshape(-1, 3)
+    faces = torch.arange(3 * n).reshape(n, 3)
+    return Meshes.from_list([verts], [faces])

@@ -1,0 +1,82 @@
+"""Slow, obviously correct dense references: every pixel against every face / point (numpy, float64).
+
+They return what the tile search returns (per pixel, the K nearest primitives), so the tests can
+swap them in for the tile kernels and compare ids and final images.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from mvtn_exp.render import tiles
+
+
+def _pixel_grid(H, W):
+    j, i = np.meshgrid(np.arange(W), np.arange(H))
+    x = (2 * j + 1) / W - 1
+    y = 1 - (2 * i + 1) / H
+    return x.reshape(-1), y.reshape(-1)
+
+
+def _seg_sqdist(p, a, b):
+    e = b - a
+    ll = max(float(e @ e), 1e-30)
+    t = np.clip(((p - a) @ e) / ll, 0, 1)
+    d = p - a - t[:, None] * e
+    return (d * d).sum(1)
+
+
+def dense_face_search(xy, z, image, *, H, W, K, blur, znear, cull_backfaces, area_eps, num_images):
+    """xy ``[N, 3, 2]`` NDC, z ``[N, 3]``, image ``[N]`` -> Selection (same contract as search_faces):
+    per pixel, faces covering it first, then faces within ``blur``; each group by (depth, index)."""
+    xy = xy.detach().double().cpu().numpy()
+    z = z.detach().double().cpu().numpy()
+    image = image.cpu().numpy()
+    px, py = _pixel_grid(H, W)
+    P = np.stack([px, py], 1)
+    cands = [[] for _ in range(num_images * H * W)]
+    for f in range(len(xy)):
+        v0, v1, v2 = xy[f]
+        area2 = (v1[0] - v0[0]) * (v2[1] - v0[1]) - (v1[1] - v0[1]) * (v2[0] - v0[0])
+        if (z[f] < znear).any() or abs(area2) <= area_eps or (cull_backfaces and area2 <= 0):
+            continue
+        # barycentrics by solving [v0 - v2, v1 - v2] [l0, l1]^T = p - v2
+        T = np.array([[v0[0] - v2[0], v1[0] - v2[0]], [v0[1] - v2[1], v1[1] - v2[1]]])
+        l01 = np.linalg.solve(T, (P - v2).T).T
+        lam = np.concatenate([l01, 1 - l01.sum(1, keepdims=True)], 1)
+        inside = (lam >= 0).all(1)
+        d2 = np.minimum(np.minimum(_seg_sqdist(P, v1, v2), _seg_sqdist(P, v2, v0)), _seg_sqdist(P, v0, v1))
+        ok = inside | (d2 <= blur * blur) if blur > 0 else inside
+        lam = np.where(inside[:, None], lam, np.clip(lam, 0, None))
+        lam = lam / lam.sum(1, keepdims=True)
+        depth = 1.0 / (lam / z[f]).sum(1)
+        base = image[f] * H * W
+        for p in np.nonzero(ok)[0]:
+            cands[base + p].append((not inside[p], depth[p], f))
+    return _to_selection(cands, K)
+
+
+def dense_point_search(xy, z, image, *, H, W, K, radius, znear, num_images):
+    xy = xy.detach().double().cpu().numpy()
+    z = z.detach().double().cpu().numpy()
+    image = image.cpu().numpy()
+    px, py = _pixel_grid(H, W)
+    cands = [[] for _ in range(num_images * H * W)]
+    for n in range(len(xy)):
+        if z[n] < znear or (np.abs(xy[n]) > 1 + radius).any():
+            continue
+        d2 = (px - xy[n, 0]) ** 2 + (py - xy[n, 1]) ** 2
+        for p in np.nonzero(d2 < radius * radius)[0]:
+            cands[image[n] * H * W + p].append((False, z[n], n))
+    return _to_selection(cands, K)
+
+
+def _to_selection(cands, K) -> tiles.Selection:
+    pix, prim = [], []
+    for p, c in enumerate(cands):
+        if c:
+            c.sort()
+            ids = [f for *_, f in c[:K]]
+            pix.append(p)
+            prim.append(ids + [-1] * (K - len(ids)))
+    return tiles.Selection(torch.tensor(pix, dtype=torch.long), torch.tensor(prim, dtype=torch.long).reshape(-1, K))

@@ -1,0 +1,97 @@
+"""The tile kernels against the dense reference: identical ids (hard), images within 1e-5 (soft)."""
+import pytest
+import torch
+
+import reference
+from conftest import random_triangles
+from mvtn_exp.data.shapes import Meshes, PointClouds
+from mvtn_exp.render import mesh_raster, point_raster
+from mvtn_exp.render.renderer import MultiViewRenderer
+
+VIEWS = (torch.tensor([[0.0, 70.0, 200.0]]), torch.tensor([[10.0, -35.0, 89.0]]))
+
+
+def _search_both(r: MultiViewRenderer, meshes, dist):
+    c = r.cfg
+    azim, elev = VIEWS
+    pf, _, _ = r.project_faces(meshes, azim, elev, dist)
+    H = c.image_size
+    sel = mesh_raster.search_faces(pf, H=H, W=H, K=c.effective_k(), blur_radius=c.effective_blur(),
+                                   tile_size=c.tile_size, max_candidates=c.max_candidates)
+    ref = reference.dense_face_search(
+        pf.xy, pf.z, pf.image, H=H, W=H, K=c.effective_k(), blur=c.effective_blur(), znear=c.znear,
+        cull_backfaces=c.cull_backfaces, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, H), num_images=azim.numel())
+    return sel, ref
+
+
+def _assert_same(sel, ref):
+    assert len(ref.pix) > 0
+    assert torch.equal(sel.pix, ref.pix)
+    assert torch.equal(sel.prim, ref.prim)
+
+
+@pytest.mark.parametrize("tile_size,max_candidates", [(8, 1 << 24), (8, 64), (5, 200), (32, 1)])
+@pytest.mark.parametrize("cull_backfaces", [False, True])
+def test_hard_ids_match_dense(tile_size, max_candidates, cull_backfaces):
+    # 40 overlapping random triangles, many larger than an 8 px tile, crossing tile borders;
+    # some vertices lie behind the camera at distance 2 (scale 1.6 + size 0.7 > 2)
+    meshes = random_triangles(40, seed=1, scale=1.6, size=0.7)
+    r = MultiViewRenderer(image_size=24, mode="hard", tile_size=tile_size, max_candidates=max_candidates, cull_backfaces=cull_backfaces)
+    sel, ref = _search_both(r, meshes, 2.0)
+    pf, _, _ = r.project_faces(meshes, *VIEWS, 2.0)
+    assert bool((pf.z < r.cfg.znear).any(1).any()), "scene must contain faces partly behind the camera"
+    _assert_same(sel, ref)
+
+
+@pytest.mark.parametrize("tile_size,max_candidates", [(8, 1 << 24), (4, 300)])
+def test_soft_k_nearest_ids_match_dense(tile_size, max_candidates):
+    meshes = random_triangles(30, seed=2, scale=1.0, size=0.5)
+    r = MultiViewRenderer(image_size=20, mode="soft", faces_per_pixel=5, sigma=2e-3, tile_size=tile_size, max_candidates=max_candidates)
+    sel, ref = _search_both(r, meshes, 2.5)
+    _assert_same(sel, ref)
+
+
+@pytest.mark.parametrize("shading", ["flat", "smooth", "silhouette"])
+def test_soft_images_match_dense(monkeypatch, shading):
+    meshes = random_triangles(25, seed=3, scale=0.9, size=0.6)
+    r = MultiViewRenderer(image_size=20, mode="soft", shading=shading, faces_per_pixel=4, sigma=1e-3, gamma=1e-2, tile_size=6)
+    out = r(meshes, *VIEWS, 2.5)
+
+    def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates):
+        return reference.dense_face_search(pf.xy, pf.z, pf.image, H=H, W=W, K=K, blur=blur_radius, znear=r.cfg.znear,
+                                           cull_backfaces=False, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, W), num_images=3)
+
+    monkeypatch.setattr(mesh_raster, "search_faces", dense)
+    ref = r(meshes, *VIEWS, 2.5)
+    assert ref.alpha.max() > 0.5
+    assert (out.images - ref.images).abs().max() <= 1e-5
+    assert (out.alpha - ref.alpha).abs().max() <= 1e-5
+
+
+@pytest.mark.parametrize("max_candidates", [1 << 24, 50])
+def test_point_ids_match_dense(max_candidates):
+    g = torch.Generator().manual_seed(4)
+    pts = (torch.rand(300, 3, generator=g, dtype=torch.float64) * 2 - 1) * 1.5
+    clouds = PointClouds.from_list([pts])
+    r = MultiViewRenderer(image_size=24, points_per_pixel=4, point_radius=0.15, tile_size=8, max_candidates=max_candidates)
+    azim, elev = VIEWS
+    xy, z, image = r._project(pts, clouds.shape_of_point(), r._cameras(azim.double(), elev.double(), torch.full_like(azim, 2.0).double()),
+                              *[t.reshape(3, *t.shape[2:]) for t in r._cameras(azim.double(), elev.double(), torch.full_like(azim, 2.0).double()).frames()])
+    rad = r.cfg.point_radius
+    alive = (z >= r.cfg.znear) & (xy.abs() <= 1 + rad).all(-1)
+    sel = point_raster.search_points(xy, z, image, alive, H=24, W=24, K=4, radius=rad, num_images=3, tile_size=8, max_candidates=max_candidates)
+    ref = reference.dense_point_search(xy, z, image, H=24, W=24, K=4, radius=rad, znear=r.cfg.znear, num_images=3)
+    _assert_same(sel, ref)
+
+
+def test_batch_of_ragged_meshes_equals_one_by_one():
+    a = random_triangles(10, seed=5)
+    b = random_triangles(23, seed=6)
+    both = Meshes.from_list([a.verts, b.verts], [a.faces, b.faces])
+    r = MultiViewRenderer(image_size=16, mode="soft", sigma=1e-3)
+    azim = torch.tensor([[0.0, 90.0], [45.0, 180.0]])
+    elev = torch.tensor([[10.0, 20.0], [-30.0, 60.0]])
+    out = r(both, azim, elev, 2.5).images
+    for i, m in enumerate((a, b)):
+        single = r(m, azim[i:i + 1], elev[i:i + 1], 2.5).images
+        assert torch.allclose(out[i:i + 1], single, atol=1e-6)
