@@ -75,8 +75,8 @@ def test_point_ids_match_dense(max_candidates):
     clouds = PointClouds.from_list([pts])
     r = MultiViewRenderer(image_size=24, points_per_pixel=4, point_radius=0.15, tile_size=8, max_candidates=max_candidates)
     azim, elev = VIEWS
-    xy, z, image = r._project(pts, clouds.shape_of_point(), r._cameras(azim.double(), elev.double(), torch.full_like(azim, 2.0).double()),
-                              *[t.reshape(3, *t.shape[2:]) for t in r._cameras(azim.double(), elev.double(), torch.full_like(azim, 2.0).double()).frames()])
+    cams = r._cameras(azim.double(), elev.double(), torch.full_like(azim, 2.0).double())
+    xy, z, image = r._project(pts, clouds.points_per_shape, cams)
     rad = r.cfg.point_radius
     alive = (z >= r.cfg.znear) & (xy.abs() <= 1 + rad).all(-1)
     sel = point_raster.search_points(xy, z, image, alive, H=24, W=24, K=4, radius=rad, num_images=3, tile_size=8, max_candidates=max_candidates)

@@ -74,14 +74,21 @@ class Cameras:
         return 1.0 / math.tan(math.radians(self.fov) / 2.0)
 
 
-def to_camera(points: torch.Tensor, image_of_point: torch.Tensor, R: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
-    """World -> camera coordinates.
+def to_camera_packed(points: torch.Tensor, counts: torch.Tensor, R: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
+    """World -> camera coordinates of packed shapes in every view of their own.
 
-    points: ``[N, 3]``; image_of_point: ``[N]`` long index into the flattened ``B*M`` views;
-    R: ``[B*M, 3, 3]``; C: ``[B*M, 3]``. Returns ``[N, 3]`` (x right, y up, z depth).
+    points: ``[N, 3]`` packed (shape b owns ``counts[b]`` consecutive rows); R ``[B, M, 3, 3]``;
+    C ``[B, M, 3]``. Returns ``[N * M, 3]`` ordered point-major (row ``n * M + m``).
+    One small matmul per shape: ``R (p - C) = R p - R C``.
     """
-    rel = points - C[image_of_point]
-    return torch.einsum("nij,nj->ni", R[image_of_point], rel)
+    B, M = R.shape[:2]
+    RC = torch.einsum("bmij,bmj->bmi", R, C)
+    out = []
+    for b, part in enumerate(torch.split(points, counts.tolist())):
+        out.append(torch.einsum("mij,vj->vmi", R[b], part) - RC[b])
+    if not out:
+        return points.new_zeros(0, 3)
+    return torch.cat(out).reshape(-1, 3)
 
 
 def camera_to_ndc(cam: torch.Tensor, cameras: Cameras, znear: float) -> tuple[torch.Tensor, torch.Tensor]:

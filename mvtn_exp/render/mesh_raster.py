@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from . import tiles
+from .ops import take
 
 # far beyond any on-screen squared NDC distance: "no boundary edge near this pixel"
 FAR_SQ = 1.0e4
@@ -25,16 +26,28 @@ FAR_SQ = 1.0e4
 class ProjectedFaces:
     """Faces of every view in screen space. Face-view index ``fv = face * M + view``.
 
-    xy: ``[F*M, 3, 2]`` NDC vertex positions (differentiable); z: ``[F*M, 3]`` depths;
+    xyz: ``[F*M, 3, 3]`` NDC x, y and depth of each corner, detached (for the search);
     image: ``[F*M]`` flat image index ``b * M + m``; alive: ``[F*M]`` bool (survived culling);
-    facing: ``[F*M]`` +1 front (counter-clockwise on screen), -1 back, 0 culled.
+    facing: ``[F*M]`` +1 front (counter-clockwise on screen), -1 back, 0 culled;
+    vert_xy ``[V*M, 2]``, vert_z ``[V*M]``: differentiable vertex-view projections;
+    fvv: ``[F*M, 3]`` vertex-view index of each face-view's corners.
     """
 
-    xy: torch.Tensor
-    z: torch.Tensor
+    xyz: torch.Tensor
     image: torch.Tensor
     alive: torch.Tensor
     facing: torch.Tensor
+    vert_xy: torch.Tensor
+    vert_z: torch.Tensor
+    fvv: torch.Tensor
+
+    @property
+    def xy(self) -> torch.Tensor:
+        return self.xyz[..., :2]
+
+    @property
+    def z(self) -> torch.Tensor:
+        return self.xyz[..., 2]
 
 
 @dataclass
@@ -64,19 +77,34 @@ def area_eps(dtype: torch.dtype, H: int, W: int) -> float:
     return 1e-4 * 4.0 / (H * W) if dtype == torch.float32 else 1e-9 * 4.0 / (H * W)
 
 
-def cull(proj_xy: torch.Tensor, z: torch.Tensor, *, znear: float, margin: float, cull_backfaces: bool, H: int, W: int):
-    """Culling mask and facing sign for face-views. proj_xy ``[N, 3, 2]``, z ``[N, 3]``."""
+def cull(proj_xy: torch.Tensor, z: torch.Tensor, *, znear: float, cull_backfaces: bool, H: int, W: int):
+    """Culling mask and facing sign for face-views. proj_xy ``[N, 3, 2]``, z ``[N, 3]``.
+
+    Faces outside the frustum need no test here: their pixel boxes are empty in the search.
+    """
     with torch.no_grad():
         x, y = proj_xy[..., 0], proj_xy[..., 1]
         area2 = _edge(x[:, 0], y[:, 0], x[:, 1], y[:, 1], x[:, 2], y[:, 2])
         alive = (z >= znear).all(1)
         alive &= area2.abs() > area_eps(proj_xy.dtype, H, W)
-        alive &= (x.min(1).values <= 1 + margin) & (x.max(1).values >= -1 - margin)
-        alive &= (y.min(1).values <= 1 + margin) & (y.max(1).values >= -1 - margin)
         if cull_backfaces:
             alive &= area2 > 0
         facing = torch.where(alive, torch.sign(area2), torch.zeros_like(area2)).to(torch.int8)
     return alive, facing
+
+
+def face_planes(x0, y0, x1, y1, x2, y2) -> list[torch.Tensor]:
+    """Screen barycentrics as planes: lambda_k = A_k x + B_k y + C_k for the corners k = 0, 1, 2.
+
+    Inputs are ``[N]`` corner coordinates; returns [A0, B0, C0, A1, B1, C1, A2, B2, C2], each ``[N]``.
+    Faces must have non-zero area (culled otherwise).
+    """
+    inv = 1.0 / _edge(x0, y0, x1, y1, x2, y2)
+    out = []
+    for (ax, ay), (bx, by) in (((x1, y1), (x2, y2)), ((x2, y2), (x0, y0)), ((x0, y0), (x1, y1))):
+        ex, ey = (bx - ax) * inv, (by - ay) * inv
+        out += [-ey, ex, ey * ax - ex * ay]
+    return out
 
 
 def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int) -> tiles.Selection:
@@ -87,30 +115,53 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
     """
     with torch.no_grad():
         fv = torch.nonzero(pf.alive).squeeze(1)
-        xy = pf.xy.detach()[fv]
-        zinv = 1.0 / pf.z.detach()[fv]
-        x, y = xy[..., 0], xy[..., 1]
+        # one transposed copy: nine contiguous [N] corner columns (x0, y0, z0, x1, ...)
+        cols = pf.xyz.index_select(0, fv).reshape(-1, 9).t().contiguous()
+        x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
         boxes = tiles.pixel_boxes(
-            x.min(1).values - blur_radius, x.max(1).values + blur_radius,
-            y.min(1).values - blur_radius, y.max(1).values + blur_radius,
-            pf.image[fv], H, W,
+            torch.minimum(torch.minimum(x0, x1), x2) - blur_radius, torch.maximum(torch.maximum(x0, x1), x2) + blur_radius,
+            torch.minimum(torch.minimum(y0, y1), y2) - blur_radius, torch.maximum(torch.maximum(y0, y1), y2) + blur_radius,
+            pf.image.index_select(0, fv), H, W,
         )
-        area2 = _edge(x[:, 0], y[:, 0], x[:, 1], y[:, 1], x[:, 2], y[:, 2])
-        num_pixels = int(pf.image.max()) + 1 if len(pf.image) else 0
-        num_pixels *= H * W
+        # faces whose box holds no pixel centre (off-screen, or tiny between centres) stop here
+        nonempty = torch.nonzero(boxes.sizes() > 0).squeeze(1)
+        fv = fv.index_select(0, nonempty)
+        cols = cols.index_select(1, nonempty)
+        boxes = tiles.PixelBoxes(*(t.index_select(0, nonempty) for t in
+                                   (boxes.image, boxes.j0, boxes.j1, boxes.i0, boxes.i1)))
+        x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
+        planes = face_planes(x0, y0, x1, y1, x2, y2)
+        # per face: the three barycentric planes and the inverse corner depths -> [Fs, 12]
+        table = torch.stack(planes + [1.0 / z0, 1.0 / z1, 1.0 / z2], 1)
+        xy = torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2)
+        # row spans: each edge moved outward by the blur radius (plus rounding slack)
+        A = torch.stack(planes[0::3], 1)
+        Bp = torch.stack(planes[1::3], 1)
+        Cp = torch.stack(planes[2::3], 1) + (blur_radius + 1e-5) * torch.sqrt(A * A + Bp * Bp)
+        rowtab = torch.cat([A, Bp, Cp], 1)  # [Fs, 9]
+
+        def span(p, yy):
+            r = rowtab.index_select(0, p)
+            A, Bc = r[:, 0:3], r[:, 3:6] * yy[:, None] + r[:, 6:9]
+            bound = -Bc / torch.where(A == 0, torch.ones_like(A), A)
+            big = torch.full_like(bound, 1e30)
+            lo = torch.where(A > 0, bound, torch.where((A == 0) & (Bc < 0), big, -big)).amax(1)
+            hi = torch.where(A < 0, bound, torch.where((A == 0) & (Bc < 0), -big, big)).amin(1)
+            return lo, hi
+
+        num_pixels = (int(pf.image.max()) + 1) * H * W if len(pf.image) else 0
         picks = []
-        for c, pix in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates):
-            px, py = tiles.pixel_centres(pix, H, W, xy.dtype)
-            fx, fy = x[c], y[c]
-            a = area2[c]
-            l0 = _edge(fx[:, 1], fy[:, 1], fx[:, 2], fy[:, 2], px, py) / a
-            l1 = _edge(fx[:, 2], fy[:, 2], fx[:, 0], fy[:, 0], px, py) / a
-            l2 = _edge(fx[:, 0], fy[:, 0], fx[:, 1], fy[:, 1], px, py) / a
-            lam = torch.stack([l0, l1, l2], 1)
+        for cand in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span):
+            t = table.index_select(0, cand.prim)
+            px, py = cand.x[:, None], cand.y[:, None]
+            lam = t[:, 0:9:3] * px + t[:, 1:9:3] * py + t[:, 2:9:3]  # [C, 3]
             inside = (lam >= 0).all(1)
             outside = None
             if blur_radius > 0:
-                near = inside | (point_triangle_sqdist(fx, fy, px, py) <= blur_radius**2)
+                near = inside.clone()
+                out_idx = torch.nonzero(~inside).squeeze(1)
+                fo = xy.index_select(0, cand.prim[out_idx])
+                near[out_idx] = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x[out_idx], cand.y[out_idx]) <= blur_radius**2
                 keep = torch.nonzero(near).squeeze(1)
                 lam = lam[keep].clamp(min=0)
                 lam = lam / lam.sum(1, keepdim=True)
@@ -118,9 +169,9 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
             else:
                 keep = torch.nonzero(inside).squeeze(1)
                 lam = lam[keep]
-            depth = 1.0 / (lam * zinv[c[keep]]).sum(1).clamp(min=1e-12)
-            picks.append(tiles.select_nearest(pix[keep], depth, fv[c[keep]], K, num_pixels, outside))
-        return tiles.merge(picks, K, pf.xy.device)
+            depth = 1.0 / (lam * t[keep, 9:12]).sum(1).clamp(min=1e-12)
+            picks.append(tiles.select_nearest(cand.pix[keep], depth, fv.index_select(0, cand.prim[keep]), K, num_pixels, outside))
+        return tiles.merge(picks, K, pf.xyz.device)
 
 
 def _segment_sqdist(ax, ay, bx, by, px, py):
@@ -155,9 +206,10 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
     """
     valid = sel.prim >= 0
     fv = sel.prim.clamp(min=0)
-    px, py = tiles.pixel_centres(sel.pix, H, W, pf.xy.dtype)
+    px, py = tiles.pixel_centres(sel.pix, H, W, pf.xyz.dtype)
     px, py = px[:, None], py[:, None]
-    xy = pf.xy[fv]  # [P, K, 3, 2]
+    vv = take(pf.fvv, fv)  # [P, K, 3] vertex-view ids
+    xy = take(pf.vert_xy, vv)  # [P, K, 3, 2]
     fx, fy = xy[..., 0], xy[..., 1]
     a = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2])
     a = torch.where(a.abs() > 1e-30, a, torch.ones_like(a))  # empty slots only (real faces: culled if ~0)
@@ -178,7 +230,7 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
     # outside the triangle (soft edges) attributes come from the nearest point of the triangle
     lam = torch.where(inside.unsqueeze(-1), lam, lam.clamp(min=0))
     lam = lam / lam.sum(-1, keepdim=True).clamp(min=1e-12)
-    zinv = lam / pf.z[fv].clamp(min=1e-12)
+    zinv = lam / take(pf.vert_z, vv).clamp(min=1e-12)
     zsum = zinv.sum(-1).clamp(min=1e-12)
     zbuf = torch.where(valid, 1.0 / zsum, torch.zeros_like(zsum))
     bary = zinv / zsum.unsqueeze(-1) if need_bary else None

@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from . import tiles
+from .ops import take
 
 
 def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive: torch.Tensor, *, H: int, W: int,
@@ -18,19 +19,32 @@ def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive:
         pv = torch.nonzero(alive).squeeze(1)
         x, y = xy.detach()[pv, 0], xy.detach()[pv, 1]
         boxes = tiles.pixel_boxes(x - radius, x + radius, y - radius, y + radius, image[pv], H, W)
+        zz = z.detach()[pv]
+        r2 = radius * radius
+
+        def span(p, yy):  # the disc's chord at height yy (slightly widened: candidates are re-tested)
+            half = (r2 - (yy - y[p]) ** 2).clamp(min=0).sqrt() + 1e-6
+            return x[p] - half, x[p] + half
+
         picks = []
-        for c, pix in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates):
-            px, py = tiles.pixel_centres(pix, H, W, xy.dtype)
-            d2 = (px - x[c]) ** 2 + (py - y[c]) ** 2
-            keep = torch.nonzero(d2 < radius * radius).squeeze(1)
-            picks.append(tiles.select_nearest(pix[keep], z.detach()[pv[c[keep]]], pv[c[keep]], K, num_images * H * W))
+        for cand in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, xy.dtype, span):
+            d2 = (cand.x - x.index_select(0, cand.prim)) ** 2 + (cand.y - y.index_select(0, cand.prim)) ** 2
+            keep = torch.nonzero(d2 < r2).squeeze(1)
+            c = cand.prim[keep]
+            picks.append(tiles.select_nearest(cand.pix[keep], zz.index_select(0, c), pv.index_select(0, c), K, num_images * H * W))
         return tiles.merge(picks, K, xy.device)
 
 
-def point_sqdist(xy: torch.Tensor, sel: tiles.Selection, *, H: int, W: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Differentiable squared NDC distance ``[P, K]`` from each active pixel to its points, and validity."""
-    valid = sel.prim >= 0
-    px, py = tiles.pixel_centres(sel.pix, H, W, xy.dtype)
-    p = xy[sel.prim.clamp(min=0)]
-    d2 = (p[..., 0] - px[:, None]) ** 2 + (p[..., 1] - py[:, None]) ** 2
-    return d2, valid
+def point_alphas(xy: torch.Tensor, sel: tiles.Selection, *, H: int, W: int, radius: float, opacity: float) -> torch.Tensor:
+    """Differentiable alphas ``[P, K]`` (0 in empty slots), computed for the occupied slots only.
+
+    Alpha falls off smoothly with the squared screen distance d^2 to the point's centre:
+    ``opacity * (1 - d^2/r^2)^2``, C1 at the rim so camera gradients stay bounded.
+    """
+    P, K = sel.prim.shape
+    slot = torch.nonzero(sel.prim.reshape(-1) >= 0).squeeze(1)  # occupied slots, flat
+    px, py = tiles.pixel_centres(sel.pix.index_select(0, torch.div(slot, K, rounding_mode="floor")), H, W, xy.dtype)
+    p = take(xy, sel.prim.reshape(-1).index_select(0, slot))
+    d2 = (p[:, 0] - px) ** 2 + (p[:, 1] - py) ** 2
+    t = (1 - d2 / (radius * radius)).clamp(min=0)
+    return xy.new_zeros(P * K).index_copy(0, slot, opacity * t * t).view(P, K)

@@ -13,8 +13,9 @@ from torch import nn
 
 from ..data.shapes import Meshes, PointClouds
 from . import lod, mesh_raster, point_raster, shading
-from .cameras import Cameras, camera_to_ndc, to_camera
+from .cameras import Cameras, camera_to_ndc, to_camera_packed
 from .config import RendererConfig
+from .ops import scatter_rows, take
 from .topology import edge_neighbours
 
 
@@ -63,12 +64,13 @@ class MultiViewRenderer(nn.Module):
         c = self.cfg
         return Cameras(azim, elev, dist, fov=c.fov, orthographic=c.orthographic, ortho_scale=c.ortho_scale)
 
-    def _project(self, pts: torch.Tensor, shape_of: torch.Tensor, cams: Cameras, R, C):
-        """``[N, 3]`` world points of shapes ``shape_of`` -> per (point, view) NDC xy ``[N*M, 2]``, depth, image."""
-        M = cams.azim.shape[1]
+    def _project(self, pts: torch.Tensor, counts: torch.Tensor, cams: Cameras):
+        """Packed ``[N, 3]`` world points -> per (point, view) NDC xy ``[N*M, 2]``, depth ``[N*M]``, image ``[N*M]``."""
+        B, M = cams.azim.shape
+        shape_of = torch.repeat_interleave(torch.arange(B, device=pts.device), counts)
         image = (shape_of[:, None] * M + torch.arange(M, device=pts.device)).reshape(-1)
-        world = pts[:, None, :].expand(-1, M, -1).reshape(-1, 3)
-        xy, z = camera_to_ndc(to_camera(world, image, R, C), cams, self.cfg.znear)
+        R, C = cams.frames()
+        xy, z = camera_to_ndc(to_camera_packed(pts, counts, R, C), cams, self.cfg.znear)
         return xy, z, image
 
     def _background(self, ref: torch.Tensor) -> torch.Tensor:
@@ -77,8 +79,8 @@ class MultiViewRenderer(nn.Module):
     def _compose(self, pix, rgb, alpha, B, M, H, W, ref) -> tuple[torch.Tensor, torch.Tensor]:
         """Scatter active-pixel rgb ``[P, 3]`` and alpha ``[P]`` into dense images."""
         n = B * M * H * W
-        img = self._background(ref).expand(n, 3).index_put((pix,), rgb)
-        a = torch.zeros(n, dtype=ref.dtype, device=ref.device).index_put((pix,), alpha)
+        img = scatter_rows(self._background(ref).expand(n, 3).contiguous(), pix, rgb)
+        a = scatter_rows(torch.zeros(n, dtype=ref.dtype, device=ref.device), pix, alpha)
         return (img.view(B, M, H, W, 3).permute(0, 1, 4, 2, 3), a.view(B, M, 1, H, W))
 
     def _light_dirs(self, B, M, C, ref) -> torch.Tensor:
@@ -132,7 +134,7 @@ class MultiViewRenderer(nn.Module):
             colors = self._face_colors(meshes, frag, B, M, C)
             if c.soft:
                 img_of_pix = frag.pix // (H * W)
-                d = dist.reshape(-1).to(verts.dtype)[img_of_pix]
+                d = take(dist.reshape(-1).to(verts.dtype), img_of_pix)
                 zfar, znear = d + 1.0, (d - 1.0).clamp(min=c.znear)
                 rgb, alpha = shading.softmax_blend(colors, frag.dist, frag.zbuf, frag.valid, zfar, znear, self._background(verts), sigma=c.sigma, gamma=c.gamma)
             else:
@@ -148,15 +150,20 @@ class MultiViewRenderer(nn.Module):
         if not torch.is_tensor(dist):
             dist = torch.full_like(azim, float(dist))
         cams = self._cameras(azim.to(verts.dtype), elev.to(verts.dtype), dist.to(verts.dtype))
-        R, C = (t.reshape(B * M, *t.shape[2:]) for t in cams.frames())
-        xy, z, _ = self._project(verts, meshes.shape_of_vert(), cams, R, C)
+        xy, z, _ = self._project(verts, meshes.verts_per_shape, cams)
+        C = cams.frames()[1]
         ar = torch.arange(M, device=verts.device)
         fvv = (meshes.faces[:, None, :] * M + ar[None, :, None]).reshape(-1, 3)  # [F*M, 3] vertex-view ids
         f_image = (meshes.shape_of_face()[:, None] * M + ar).reshape(-1)
-        pxy, pz = xy[fvv], z[fvv]
-        alive, facing = mesh_raster.cull(pxy, pz, znear=c.znear, margin=c.effective_blur(),
-                                         cull_backfaces=c.cull_backfaces, H=c.image_size, W=c.image_size)
-        return mesh_raster.ProjectedFaces(pxy, pz, f_image, alive, facing), cams, C
+        with torch.no_grad():
+            # gather whole rows of M views per corner, then one strided copy to face-view order
+            V = len(verts)
+            xyz = torch.cat([xy.detach(), z.detach()[:, None]], 1).view(V, M * 3)
+            fxyz = take(xyz, meshes.faces).view(-1, 3, M, 3).permute(0, 2, 1, 3).reshape(-1, 3, 3)
+            alive, facing = mesh_raster.cull(fxyz[..., :2], fxyz[..., 2], znear=c.znear, cull_backfaces=c.cull_backfaces,
+                                             H=c.image_size, W=c.image_size)
+        pf = mesh_raster.ProjectedFaces(fxyz, f_image, alive, facing, xy, z, fvv)
+        return pf, cams, C.reshape(B * M, 3)
 
     def _interior_edges(self, faces, facing, M) -> torch.Tensor:
         """``[F*M, 3]`` True where the neighbour across an edge is alive and faces the same way."""
@@ -172,18 +179,18 @@ class MultiViewRenderer(nn.Module):
         verts, faces = meshes.verts, meshes.faces
         f = frag.fv.clamp(min=0) // M
         img = frag.fv.clamp(min=0) % M + meshes.shape_of_face()[f] * M
-        tri = verts[faces]  # [F, 3, 3]
+        tri = take(verts, faces)  # [F, 3, 3]
         fn = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
         if c.shading == "smooth":
             vn = torch.zeros_like(verts).index_add(0, faces.reshape(-1), fn.repeat_interleave(3, 0))
-            normals = (frag.bary[..., None] * vn[faces[f]]).sum(-2)
-            points = (frag.bary[..., None] * tri[f]).sum(-2)
+            normals = (frag.bary[..., None] * take(vn, take(faces, f))).sum(-2)
+            points = (frag.bary[..., None] * take(tri, f)).sum(-2)
         else:
-            normals = fn[f]
-            points = tri.mean(1)[f]
-        light = self._light_dirs(B, M, C, verts)[img]
-        albedo = self._shape_colors(B, verts)[img // M]
-        return shading.phong(normals, points, C[img], light, albedo, ambient=c.ambient, diffuse=c.diffuse,
+            normals = take(fn, f)
+            points = take(tri.mean(1), f)
+        light = take(self._light_dirs(B, M, C, verts), img)
+        albedo = take(self._shape_colors(B, verts), img // M)
+        return shading.phong(normals, points, take(C, img), light, albedo, ambient=c.ambient, diffuse=c.diffuse,
                              specular=c.specular, shininess=c.shininess, two_sided=c.two_sided)
 
     # ---------------------------------------------------------------- points
@@ -193,19 +200,14 @@ class MultiViewRenderer(nn.Module):
         B, M = azim.shape
         pts = clouds.points
         cams = self._cameras(azim.to(pts.dtype), elev.to(pts.dtype), dist.to(pts.dtype))
-        R, C = (t.reshape(B * M, *t.shape[2:]) for t in cams.frames())
-        xy, z, image = self._project(pts, clouds.shape_of_point(), cams, R, C)
+        xy, z, image = self._project(pts, clouds.points_per_shape, cams)
         r = c.point_radius
         with torch.no_grad():
             alive = (z >= c.znear) & (xy.detach().abs() <= 1 + r).all(-1)
         sel = point_raster.search_points(xy, z, image, alive, H=H, W=W, K=c.points_per_pixel, radius=r,
                                          num_images=B * M, tile_size=c.tile_size, max_candidates=c.max_candidates)
-        d2, valid = point_raster.point_sqdist(xy, sel, H=H, W=W)
-        a = shading.point_alpha(d2, valid, r, c.point_opacity)
-        if clouds.colors is None:
-            colors = torch.ones(*a.shape, 3, dtype=pts.dtype, device=pts.device)
-        else:
-            colors = clouds.colors[sel.prim.clamp(min=0) // M]
+        a = point_raster.point_alphas(xy, sel, H=H, W=W, radius=r, opacity=c.point_opacity)
+        colors = None if clouds.colors is None else take(clouds.colors, sel.prim.clamp(min=0) // M)
         bg = self._background(pts)
         composite = shading.alpha_composite if c.compositor == "alpha" else shading.norm_weighted_composite
         rgb, alpha = composite(a, colors, bg)

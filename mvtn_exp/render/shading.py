@@ -73,21 +73,16 @@ def silhouette_blend(dist, valid, *, sigma: float):
     return alpha, alpha
 
 
-def point_alpha(sqdist: torch.Tensor, valid: torch.Tensor, radius: float, opacity: float) -> torch.Tensor:
-    """Smooth falloff ``opacity * (1 - d^2/r^2)^2``: C1 at the rim, so camera gradients stay bounded."""
-    t = (1 - sqdist / (radius * radius)).clamp(min=0)
-    return torch.where(valid, opacity * t * t, torch.zeros_like(t))
-
-
 def alpha_composite(alpha, colors, background):
-    """Front-to-back ``sum_k c_k a_k prod_{j<k}(1 - a_j)`` plus the background times transmittance."""
-    rgb = torch.zeros_like(colors[:, 0])
-    T = torch.ones_like(alpha[:, :1])
-    for k in range(alpha.shape[1]):
-        a = alpha[:, k : k + 1]
-        rgb = rgb + T * a * colors[:, k]
-        T = T * (1 - a)
-    return rgb + T * background, 1 - T[:, 0]
+    """Front-to-back ``sum_k c_k a_k prod_{j<k}(1 - a_j)`` plus the background times transmittance.
+
+    alpha ``[P, K]`` (slots nearest first), colors ``[P, K, 3]`` or None for white, background ``[3]``.
+    """
+    T = torch.cumprod(1 - alpha, 1)  # transmittance after each slot
+    w = alpha * torch.cat([torch.ones_like(T[:, :1]), T[:, :-1]], 1)
+    lit = w.sum(1, keepdim=True) if colors is None else (w[..., None] * colors).sum(1)
+    rgb = lit + T[:, -1:] * background
+    return rgb, 1 - T[:, -1]
 
 
 def norm_weighted_composite(alpha, colors, background):
@@ -98,5 +93,6 @@ def norm_weighted_composite(alpha, colors, background):
     the falloff (a normalisation without the background term would make it camera-independent).
     """
     T = torch.prod(1 - alpha, 1, keepdim=True)
-    num = (alpha[..., None] * colors).sum(1) + T * background
+    lit = alpha.sum(1, keepdim=True) if colors is None else (alpha[..., None] * colors).sum(1)
+    num = lit + T * background
     return num / (alpha.sum(1, keepdim=True) + T), 1 - T[:, 0]

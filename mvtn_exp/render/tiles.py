@@ -69,17 +69,71 @@ def pixel_centres(pix: torch.Tensor, H: int, W: int, dtype: torch.dtype) -> tupl
     return x, y
 
 
-def _enumerate(boxes: PixelBoxes, prim: torch.Tensor, H: int, W: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """All pixel centres in the boxes of ``prim`` -> (primitive index, flat pixel index), both ``[C]``."""
-    w = (boxes.j1[prim] - boxes.j0[prim] + 1).clamp(min=0)
-    n = w * (boxes.i1[prim] - boxes.i0[prim] + 1).clamp(min=0)
-    owner = torch.repeat_interleave(torch.arange(len(prim), device=prim.device), n)
-    start = torch.cumsum(n, 0) - n
-    local = torch.arange(len(owner), device=prim.device) - start[owner]
-    wo = w[owner]
-    p = prim[owner]
-    pix = (boxes.image[p] * H + boxes.i0[p] + local // wo) * W + boxes.j0[p] + local % wo
-    return p, pix
+@dataclass
+class Candidates:
+    """(primitive, pixel) pairs: prim, pix ``[C]`` long; x, y ``[C]`` NDC pixel centres."""
+
+    prim: torch.Tensor
+    pix: torch.Tensor
+    x: torch.Tensor
+    y: torch.Tensor
+
+
+# boxes of at most this many pixels are enumerated whole; larger ones row by row through ``span``
+SMALL_BOX = 2
+
+
+def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner=None) -> Candidates:
+    """Pixel centres of the boxes ``sel``.
+
+    span: optional ``span(prim [R], y [R]) -> (xlo, xhi)`` giving, per box row at NDC height y, an
+    interval that contains every pixel the primitive can reach there (a superset: callers still
+    test each candidate exactly); it trims large boxes to the primitive's own shape. Small boxes
+    (<= SMALL_BOX pixels) skip it: the row pass would cost more than the candidates it saves.
+    owner: maps box index -> primitive index (tile-clipped boxes); identity when None.
+    """
+    if span is None:
+        return _enumerate_boxes(boxes, sel, H, W, dtype, owner)
+    small = boxes.sizes().index_select(0, sel) <= SMALL_BOX
+    parts = [_enumerate_boxes(boxes, sel[small], H, W, dtype, owner),
+             _enumerate_rows(boxes, sel[~small], H, W, span, dtype, owner)]
+    return Candidates(*(torch.cat([getattr(a, k) for a in parts]) for k in ("prim", "pix", "x", "y")))
+
+
+def _enumerate_boxes(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, dtype, owner) -> Candidates:
+    dev = sel.device
+    j0, i0 = boxes.j0.index_select(0, sel), boxes.i0.index_select(0, sel)
+    w = (boxes.j1.index_select(0, sel) - j0 + 1).clamp(min=0)
+    n = w * (boxes.i1.index_select(0, sel) - i0 + 1).clamp(min=0)
+    own = torch.repeat_interleave(torch.arange(len(sel), device=dev), n)
+    local = torch.arange(len(own), device=dev) - (torch.cumsum(n, 0) - n).index_select(0, own)
+    wo = w.index_select(0, own)
+    di = torch.div(local, wo, rounding_mode="floor")
+    i = i0.index_select(0, own) + di
+    j = j0.index_select(0, own) + local - di * wo
+    b = sel.index_select(0, own)
+    pix = (boxes.image.index_select(0, b) * H + i) * W + j
+    p = b if owner is None else owner.index_select(0, b)
+    return Candidates(p, pix, (2 * j + 1).to(dtype) / W - 1, 1 - (2 * i + 1).to(dtype) / H)
+
+
+def _enumerate_rows(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner) -> Candidates:
+    dev = sel.device
+    i0 = boxes.i0.index_select(0, sel)
+    nrows = (boxes.i1.index_select(0, sel) - i0 + 1).clamp(min=0)
+    rown = torch.repeat_interleave(torch.arange(len(sel), device=dev), nrows)
+    i = (i0 - (torch.cumsum(nrows, 0) - nrows)).index_select(0, rown) + torch.arange(len(rown), device=dev)
+    b = sel.index_select(0, rown)
+    p = b if owner is None else owner.index_select(0, b)
+    y = 1 - (2 * i + 1).to(dtype) / H
+    xlo, xhi = span(p, y)
+    j0 = torch.maximum(boxes.j0.index_select(0, b), torch.ceil(((xlo + 1) * W - 1) / 2).clamp(-1, W).long())
+    j1 = torch.minimum(boxes.j1.index_select(0, b), torch.floor(((xhi + 1) * W - 1) / 2).clamp(-1, W).long())
+    n = (j1 - j0 + 1).clamp(min=0)
+    own = torch.repeat_interleave(torch.arange(len(n), device=dev), n)
+    j = (j0 - (torch.cumsum(n, 0) - n)).index_select(0, own) + torch.arange(len(own), device=dev)
+    pix = ((boxes.image.index_select(0, b) * H + i) * W).index_select(0, own) + j
+    return Candidates(p.index_select(0, own), pix, (2 * j + 1).to(dtype) / W - 1, y.index_select(0, own))
 
 
 def _split_box_by_tiles(boxes: PixelBoxes, prim: torch.Tensor, tile: int, H: int, W: int):
@@ -110,8 +164,9 @@ def _split_box_by_tiles(boxes: PixelBoxes, prim: torch.Tensor, tile: int, H: int
 _warned_tile_budget = False
 
 
-def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_candidates: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
-    """Yield ``(prim, pix)`` candidate chunks; every pixel's candidates lie in exactly one chunk."""
+def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_candidates: int, dtype=torch.float32,
+                     span=None) -> Iterator[Candidates]:
+    """Yield candidate chunks; every pixel's candidates lie in exactly one chunk (see ``_enumerate`` for span)."""
     global _warned_tile_budget
     sizes = boxes.sizes()
     prim = torch.nonzero(sizes > 0).squeeze(1)
@@ -119,7 +174,7 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
         return
     total = int(sizes[prim].sum())
     if total <= max_candidates:
-        yield _enumerate(boxes, prim, H, W)
+        yield _enumerate(boxes, prim, H, W, span, dtype)
         return
     tiles, owner, tile_id = _split_box_by_tiles(boxes, prim, tile_size, H, W)
     pair_sizes = tiles.sizes()
@@ -144,8 +199,7 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
         last = t == len(cum) - 1
         if last or cum[t + 1] - base > max_candidates:
             sel = torch.arange(start_pair, pair_end[t], device=prim.device)
-            p, pix = _enumerate(tiles, sel, H, W)
-            yield owner[p], pix
+            yield _enumerate(tiles, sel, H, W, span, dtype, owner)
             start_pair, base = pair_end[t], cum[t]
 
 
