@@ -6,6 +6,7 @@ lines are the paths of the files written into the Hydra run directory.
 from __future__ import annotations
 
 import logging
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
 from ..data import mesh_io
-from ..data.shapes import Meshes, PointClouds
+from ..data.shapes import Meshes, PointClouds, ShapeError
 from ..render import layouts
 from ..render.config import RendererConfig
 from ..render.renderer import MultiViewRenderer
@@ -126,8 +127,13 @@ def render_file(cfg: RenderAppConfig, out_dir: Path) -> list[Path]:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="render")
 def _app(cfg) -> None:
-    obj: RenderAppConfig = OmegaConf.to_object(cfg)
-    paths = render_file(obj, Path(HydraConfig.get().runtime.output_dir))
+    try:
+        obj: RenderAppConfig = OmegaConf.to_object(cfg)
+        paths = render_file(obj, Path(HydraConfig.get().runtime.output_dir))
+    except (mesh_io.ShapeFileError, ShapeError, ValueError) as exc:
+        # bad input: one clear line, no traceback
+        print(f"mvtn-render: error: {exc}", file=sys.stderr)
+        sys.exit(2)
     for p in paths:
         print(p)
 

@@ -77,11 +77,15 @@ class MultiViewRenderer(nn.Module):
         return torch.tensor(self.cfg.background, dtype=ref.dtype, device=ref.device)
 
     def _compose(self, pix, rgb, alpha, B, M, H, W, ref) -> tuple[torch.Tensor, torch.Tensor]:
-        """Scatter active-pixel rgb ``[P, 3]`` and alpha ``[P]`` into dense images."""
-        n = B * M * H * W
-        img = scatter_rows(self._background(ref).expand(n, 3).contiguous(), pix, rgb)
-        a = scatter_rows(torch.zeros(n, dtype=ref.dtype, device=ref.device), pix, alpha)
-        return (img.view(B, M, H, W, 3).permute(0, 1, 4, 2, 3), a.view(B, M, 1, H, W))
+        """Scatter active-pixel rgb ``[P, 3]`` and alpha ``[P]`` into dense channel-first images."""
+        HW = H * W
+        img = self._background(ref)[:, None].expand(B * M, 3, HW).reshape(-1)
+        # flat index of channel c of pixel p in image i: (3 i + c) HW + p = pix + 2 i HW + c HW
+        base = pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
+        idx = torch.cat([base, base + HW, base + 2 * HW])
+        img = scatter_rows(img, idx, rgb.t().reshape(-1))
+        a = scatter_rows(torch.zeros(B * M * HW, dtype=ref.dtype, device=ref.device), pix, alpha)
+        return img.view(B, M, 3, H, W), a.view(B, M, 1, H, W)
 
     def _light_dirs(self, B, M, C, ref) -> torch.Tensor:
         """Unit vectors towards the light, ``[B*M, 3]`` world."""
