@@ -1,0 +1,102 @@
+"""mvtn-bench: the quick benchmark end to end, the dense reference against search_faces, PeakMemory."""
+import json
+import math
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from conftest import random_triangles
+from mvtn_exp.bench.dense import dense_pairs, dense_search, estimate_pairs
+from mvtn_exp.bench.memory import PeakMemory
+from mvtn_exp.bench.render_bench import torus
+from mvtn_exp.render import layouts, mesh_raster
+from mvtn_exp.render.renderer import MultiViewRenderer
+
+
+def _table(md: str, heading: str) -> list[list[str]]:
+    """Rows (cells) of the Markdown table under the ``## heading...`` line."""
+    block = md.split("## " + heading, 1)[1].split("\n## ", 1)[0]
+    lines = [l for l in block.splitlines() if l.startswith("|")]
+    assert len(lines) >= 2 and set(lines[1].replace("|", "")) == {"-"}, block
+    return [[c.strip() for c in l.strip("|").split("|")] for l in lines[2:]]
+
+
+def _positive_finite(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+
+def test_quick_benchmark_cli(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "mvtn_exp.cli.bench", "quick=true", "repeats=2", "progress=false", f"hydra.run.dir={tmp_path}"],
+        capture_output=True, text=True, check=True, timeout=120,
+    )
+    lines = out.stdout.strip().splitlines()
+    md_path = Path(lines[-1])
+    assert md_path == (tmp_path / "bench.md").resolve() and md_path.is_file()
+    md = md_path.read_text()
+    assert md.strip() in out.stdout  # the printed tables are the file's
+    assert "MALLOC_MMAP_THRESHOLD_=65536" in md  # the CLI re-executed itself with the pinned threshold
+
+    grid = _table(md, "Renderer grid")
+    assert len(grid) == 8  # (2k mesh, 2048 points) x 64 px x M in {1, 4} x K in {1, 8}
+    for row in grid:
+        fwd, fb, peak = float(row[5]), float(row[6]), float(row[7])
+        assert fwd > 0 and fb > 0 and math.isfinite(fwd) and math.isfinite(fb)
+        assert peak >= 0 and math.isfinite(peak)
+    assert {r[0] for r in grid} == {"torus-2k", "points-2048"}
+    resnet = _table(md, "ResNet-18 reference")
+    assert len(resnet) == 2 and all(float(r[2]) > 0 for r in resnet)
+    dense = _table(md, "Dense reference")
+    assert len(dense) == 2 and all(r[-1] == "yes" and float(r[5]) > 0 and float(r[6]) > 0 for r in dense)
+    targets = _table(md, "Targets")
+    assert len(targets) == 6 and all(re.match(r"PASS|MISS|n/a", r[-1]) for r in targets)
+
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert data["meta"]["options"]["quick"] is True
+    assert len(data["grid"]) == 8
+    for row in data["grid"]:
+        assert all(_positive_finite(t) for t in row["fwd_s"] + row["fwd_bwd_s"]) and row["fwd_s"] and row["fwd_bwd_s"]
+        assert row["peak_mib"] is not None and row["peak_mib"] >= 0
+    assert all(_positive_finite(t) for r in data["resnet"] for t in r["fwd_bwd_s"])
+    assert _positive_finite(data["meta"]["elapsed_s"])
+
+
+def _compare(mesh, size, views):
+    r = MultiViewRenderer(image_size=size)
+    azim, elev, dist = layouts.spherical(views)
+    pf = r.project_faces(mesh, azim, elev, dist)[0]
+    ref = mesh_raster.search_faces(pf, H=size, W=size, K=1, blur_radius=0.0, tile_size=r.cfg.tile_size,
+                                   max_candidates=r.cfg.max_candidates)
+    got = dense_search(pf, H=size, W=size, chunk_pairs=5000)  # small chunks: several per image
+    assert len(ref.pix) > 0
+    assert torch.equal(got.pix, ref.pix)
+    assert torch.equal(got.prim, ref.prim)
+    return pf
+
+
+def test_dense_reference_matches_search_faces_torus():
+    pf = _compare(torus("torus-2k", "cpu"), 32, 3)
+    assert dense_pairs(pf, 32, 32) == 32 * 32 * int(pf.alive.sum()) <= estimate_pairs(2048, 3, 32, 32)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_dense_reference_matches_search_faces_overlapping(dtype):
+    _compare(random_triangles(200, seed=3, dtype=dtype), 40, 4)
+
+
+def test_peak_memory_detects_200mib():
+    n = 200 * (1 << 20) // 4
+    with PeakMemory("cpu") as pm:
+        x = torch.ones(n)  # touched: resident
+        time.sleep(0.02)
+        del x
+    assert 140 <= pm.peak_mib <= 260, pm.peak_mib
+    with PeakMemory("cpu") as small:
+        y = torch.ones(1000)
+        del y
+    assert small.peak_mib < 50
