@@ -20,6 +20,8 @@ from .ops import take
 
 # far beyond any on-screen squared NDC distance: "no boundary edge near this pixel"
 FAR_SQ = 1.0e4
+# hard mode: face boxes of at most this many pixels are tested whole, larger ones go row by row
+SMALL_BOX_HARD = 2
 
 
 @dataclass
@@ -131,46 +133,56 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
                                    (boxes.image, boxes.j0, boxes.j1, boxes.i0, boxes.i1)))
         x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
         planes = face_planes(x0, y0, x1, y1, x2, y2)
-        # per face: the three barycentric planes and the inverse corner depths -> [Fs, 12]
-        table = torch.stack(planes + [1.0 / z0, 1.0 / z1, 1.0 / z2], 1)
-        xy = torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2)
-        # row spans: each edge moved outward by the blur radius (plus rounding slack)
+        iz = [1.0 / z0, 1.0 / z1, 1.0 / z2]
+        # row spans: edge k (moved outward by the blur radius plus rounding slack) bounds x at
+        # height y by x = s_k y + t_k, from the left when A_k > 0, from the right when A_k < 0;
+        # edges with A_k = 0 are horizontal and never bound a row inside the face's box
         A = torch.stack(planes[0::3], 1)
         Bp = torch.stack(planes[1::3], 1)
         Cp = torch.stack(planes[2::3], 1) + (blur_radius + 1e-5) * torch.sqrt(A * A + Bp * Bp)
-        rowtab = torch.cat([A, Bp, Cp], 1)  # [Fs, 9]
+        safe = torch.where(A == 0, torch.ones_like(A), A)
+        slope, icpt = -Bp / safe, -Cp / safe
+        inf = torch.full_like(A, float("inf"))
+        zero = torch.zeros_like(A)
+        parts = [torch.where(A > 0, slope, zero), torch.where(A > 0, icpt, -inf),
+                 torch.where(A < 0, slope, zero), torch.where(A < 0, icpt, inf)]
+        rowtab = torch.cat(parts, 1)  # [Fs, 12]
 
         def span(p, yy):
             r = rowtab.index_select(0, p)
-            A, Bc = r[:, 0:3], r[:, 3:6] * yy[:, None] + r[:, 6:9]
-            bound = -Bc / torch.where(A == 0, torch.ones_like(A), A)
-            big = torch.full_like(bound, 1e30)
-            lo = torch.where(A > 0, bound, torch.where((A == 0) & (Bc < 0), big, -big)).amax(1)
-            hi = torch.where(A < 0, bound, torch.where((A == 0) & (Bc < 0), -big, big)).amin(1)
-            return lo, hi
+            yc = yy[:, None]
+            return tiles.columns((r[:, 0:3] * yc + r[:, 3:6]).amax(1), (r[:, 6:9] * yc + r[:, 9:12]).amin(1), W)
 
         num_pixels = (int(pf.image.max()) + 1) * H * W if len(pf.image) else 0
         picks = []
-        for cand in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span):
+        table = torch.stack(planes + iz, 1)  # [Fs, 12]: barycentric planes, inverse corner depths
+        if blur_radius == 0:
+            # hard mode: faces covering each pixel, depth from the barycentric planes
+            for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, SMALL_BOX_HARD):
+                cand = tiles.concat(parts)
+                t = table.index_select(0, cand.prim)
+                lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]
+                keep = torch.nonzero((lam >= 0).all(1)).squeeze(1)
+                depth = 1.0 / (lam[keep] * t[keep, 9:12]).sum(1).clamp(min=1e-12)
+                picks.append(tiles.select_nearest(cand.pix[keep], depth, fv.index_select(0, cand.prim[keep]), K, num_pixels))
+            return tiles.merge(picks, K, pf.xyz.device)
+        # soft mode: candidates within the dilated span, tested exactly against the blur radius
+        xy = torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2)
+        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span):
+            cand = tiles.concat(parts)
             t = table.index_select(0, cand.prim)
             px, py = cand.x[:, None], cand.y[:, None]
             lam = t[:, 0:9:3] * px + t[:, 1:9:3] * py + t[:, 2:9:3]  # [C, 3]
             inside = (lam >= 0).all(1)
-            outside = None
-            if blur_radius > 0:
-                near = inside.clone()
-                out_idx = torch.nonzero(~inside).squeeze(1)
-                fo = xy.index_select(0, cand.prim[out_idx])
-                near[out_idx] = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x[out_idx], cand.y[out_idx]) <= blur_radius**2
-                keep = torch.nonzero(near).squeeze(1)
-                lam = lam[keep].clamp(min=0)
-                lam = lam / lam.sum(1, keepdim=True)
-                outside = ~inside[keep]
-            else:
-                keep = torch.nonzero(inside).squeeze(1)
-                lam = lam[keep]
+            near = inside.clone()
+            out_idx = torch.nonzero(~inside).squeeze(1)
+            fo = xy.index_select(0, cand.prim[out_idx])
+            near[out_idx] = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x[out_idx], cand.y[out_idx]) <= blur_radius**2
+            keep = torch.nonzero(near).squeeze(1)
+            lam = lam[keep].clamp(min=0)
+            lam = lam / lam.sum(1, keepdim=True)
             depth = 1.0 / (lam * t[keep, 9:12]).sum(1).clamp(min=1e-12)
-            picks.append(tiles.select_nearest(cand.pix[keep], depth, fv.index_select(0, cand.prim[keep]), K, num_pixels, outside))
+            picks.append(tiles.select_nearest(cand.pix[keep], depth, fv.index_select(0, cand.prim[keep]), K, num_pixels, ~inside[keep]))
         return tiles.merge(picks, K, pf.xyz.device)
 
 

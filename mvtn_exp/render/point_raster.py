@@ -23,11 +23,13 @@ def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive:
         r2 = radius * radius
 
         def span(p, yy):  # the disc's chord at height yy (slightly widened: candidates are re-tested)
-            half = (r2 - (yy - y[p]) ** 2).clamp(min=0).sqrt() + 1e-6
-            return x[p] - half, x[p] + half
+            cx = x.index_select(0, p)
+            half = (r2 - (yy - y.index_select(0, p)) ** 2).clamp(min=0).sqrt() + 1e-6
+            return tiles.columns(cx - half, cx + half, W)
 
         picks = []
-        for cand in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, xy.dtype, span):
+        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, xy.dtype, span):
+            cand = tiles.concat(parts)
             d2 = (cand.x - x.index_select(0, cand.prim)) ** 2 + (cand.y - y.index_select(0, cand.prim)) ** 2
             keep = torch.nonzero(d2 < r2).squeeze(1)
             c = cand.prim[keep]

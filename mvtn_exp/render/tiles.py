@@ -80,23 +80,34 @@ class Candidates:
 
 
 # boxes of at most this many pixels are enumerated whole; larger ones row by row through ``span``
-SMALL_BOX = 2
+SMALL_BOX = 4
 
 
-def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner=None) -> Candidates:
-    """Pixel centres of the boxes ``sel``.
+def columns(xlo: torch.Tensor, xhi: torch.Tensor, W: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """NDC interval -> inclusive range of pixel-centre columns inside it (empty when j1 < j0)."""
+    return (torch.ceil(((xlo + 1) * W - 1) / 2).clamp(-1, W).long(),
+            torch.floor(((xhi + 1) * W - 1) / 2).clamp(-1, W).long())
 
-    span: optional ``span(prim [R], y [R]) -> (xlo, xhi)`` giving, per box row at NDC height y, an
-    interval that contains every pixel the primitive can reach there (a superset: callers still
-    test each candidate exactly); it trims large boxes to the primitive's own shape. Small boxes
-    (<= SMALL_BOX pixels) skip it: the row pass would cost more than the candidates it saves.
+
+def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner=None,
+               small_box=SMALL_BOX) -> tuple[Candidates, Candidates]:
+    """Pixel centres of the boxes ``sel``: (from whole boxes, from row spans).
+
+    span: optional ``span(prim [R], y [R]) -> (j0, j1)``: per box row at NDC height y, the
+    inclusive pixel columns the primitive can reach there (see ``columns``); it trims large boxes
+    to the primitive's own shape. Boxes of at most ``small_box`` pixels skip it and are enumerated
+    whole: there the row pass would cost more than the candidates it saves.
     owner: maps box index -> primitive index (tile-clipped boxes); identity when None.
     """
     if span is None:
-        return _enumerate_boxes(boxes, sel, H, W, dtype, owner)
-    small = boxes.sizes().index_select(0, sel) <= SMALL_BOX
-    parts = [_enumerate_boxes(boxes, sel[small], H, W, dtype, owner),
-             _enumerate_rows(boxes, sel[~small], H, W, span, dtype, owner)]
+        small = torch.ones_like(sel, dtype=torch.bool)
+    else:
+        small = boxes.sizes().index_select(0, sel) <= small_box
+    return (_enumerate_boxes(boxes, sel[small], H, W, dtype, owner),
+            _enumerate_rows(boxes, sel[~small], H, W, span, dtype, owner))
+
+
+def concat(parts: tuple[Candidates, ...]) -> Candidates:
     return Candidates(*(torch.cat([getattr(a, k) for a in parts]) for k in ("prim", "pix", "x", "y")))
 
 
@@ -126,9 +137,9 @@ def _enumerate_rows(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, 
     b = sel.index_select(0, rown)
     p = b if owner is None else owner.index_select(0, b)
     y = 1 - (2 * i + 1).to(dtype) / H
-    xlo, xhi = span(p, y)
-    j0 = torch.maximum(boxes.j0.index_select(0, b), torch.ceil(((xlo + 1) * W - 1) / 2).clamp(-1, W).long())
-    j1 = torch.minimum(boxes.j1.index_select(0, b), torch.floor(((xhi + 1) * W - 1) / 2).clamp(-1, W).long())
+    j0, j1 = span(p, y)
+    j0 = torch.maximum(boxes.j0.index_select(0, b), j0)
+    j1 = torch.minimum(boxes.j1.index_select(0, b), j1)
     n = (j1 - j0 + 1).clamp(min=0)
     own = torch.repeat_interleave(torch.arange(len(n), device=dev), n)
     j = (j0 - (torch.cumsum(n, 0) - n)).index_select(0, own) + torch.arange(len(own), device=dev)
@@ -165,8 +176,9 @@ _warned_tile_budget = False
 
 
 def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_candidates: int, dtype=torch.float32,
-                     span=None) -> Iterator[Candidates]:
-    """Yield candidate chunks; every pixel's candidates lie in exactly one chunk (see ``_enumerate`` for span)."""
+                     span=None, small_box: int = SMALL_BOX) -> Iterator[tuple[Candidates, Candidates]]:
+    """Yield candidate chunks, each as (from whole boxes, from row spans) (see ``_enumerate``);
+    every pixel's candidates lie in exactly one chunk."""
     global _warned_tile_budget
     sizes = boxes.sizes()
     prim = torch.nonzero(sizes > 0).squeeze(1)
@@ -174,7 +186,7 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
         return
     total = int(sizes[prim].sum())
     if total <= max_candidates:
-        yield _enumerate(boxes, prim, H, W, span, dtype)
+        yield _enumerate(boxes, prim, H, W, span, dtype, None, small_box)
         return
     tiles, owner, tile_id = _split_box_by_tiles(boxes, prim, tile_size, H, W)
     pair_sizes = tiles.sizes()
@@ -199,7 +211,7 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
         last = t == len(cum) - 1
         if last or cum[t + 1] - base > max_candidates:
             sel = torch.arange(start_pair, pair_end[t], device=prim.device)
-            yield _enumerate(tiles, sel, H, W, span, dtype, owner)
+            yield _enumerate(tiles, sel, H, W, span, dtype, owner, small_box)
             start_pair, base = pair_end[t], cum[t]
 
 
