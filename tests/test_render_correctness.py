@@ -169,3 +169,18 @@ def test_train_mode_randomises_light_and_colour_eval_is_fixed():
     # white object at test time: the brightest pixel is grey-level (r = g = b)
     px = ev1[0, 0].reshape(3, -1)
     assert torch.allclose(px[0], px[1]) and torch.allclose(px[1], px[2])
+
+
+@pytest.mark.parametrize("specular", [0.0, 0.4])
+def test_flat_shading_per_face_view_equals_per_pixel(monkeypatch, specular):
+    from mvtn_exp.render import renderer as renderer_module
+
+    mesh = icosphere(2)
+    r = MultiViewRenderer(image_size=40, specular=specular, light="fixed", light_direction=[0.3, 1.0, 0.2])
+    a, e = torch.tensor([[10.0, 200.0]]), torch.tensor([[30.0, -70.0]])
+    monkeypatch.setattr(renderer_module, "SHADE_FACE_VIEWS", True)
+    per_face = r(mesh, a, e).images
+    monkeypatch.setattr(renderer_module, "SHADE_FACE_VIEWS", False)
+    per_pixel = r(mesh, a, e).images
+    assert per_face.max() > 0.3
+    assert torch.equal(per_face, per_pixel)

@@ -58,7 +58,8 @@ class Fragments:
 
     pix: ``[P]`` flat pixel index; fv: ``[P, K]`` face-view index (-1 empty); valid: ``[P, K]``;
     bary: ``[P, K, 3]`` perspective-correct barycentrics (None if not requested);
-    zbuf: ``[P, K]`` depth; dist: ``[P, K]`` signed squared NDC distance (None in hard mode).
+    zbuf: ``[P, K]`` depth (None when neither barycentrics nor distances are needed);
+    dist: ``[P, K]`` signed squared NDC distance (None in hard mode).
     """
 
     pix: torch.Tensor
@@ -217,6 +218,9 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
     silhouettes: the coverage of a closed surface does not dip at its internal edges).
     """
     valid = sel.prim >= 0
+    if not (need_bary or need_dist):
+        # hard flat shading needs no per-pixel geometry at all: colours are per face
+        return Fragments(sel.pix, sel.prim, valid, None, None, None)
     fv = sel.prim.clamp(min=0)
     px, py = tiles.pixel_centres(sel.pix, H, W, pf.xyz.dtype)
     px, py = px[:, None], py[:, None]

@@ -19,6 +19,11 @@ from .ops import scatter_rows, take
 from .topology import edge_neighbours
 
 
+# flat shading: None = shade all face-views or only the hit (pixel, slot) pairs, whichever is
+# fewer; True / False force one (tests compare the two)
+SHADE_FACE_VIEWS: bool | None = None
+
+
 @dataclass
 class RenderOutput:
     """images ``[B, M, 3, H, W]`` in [0, 1]; alpha ``[B, M, 1, H, W]`` coverage; stats: counters."""
@@ -181,21 +186,32 @@ class MultiViewRenderer(nn.Module):
         """Phong colour of every (active pixel, slot): ``[P, K, 3]``."""
         c = self.cfg
         verts, faces = meshes.verts, meshes.faces
-        f = frag.fv.clamp(min=0) // M
-        img = frag.fv.clamp(min=0) % M + meshes.shape_of_face()[f] * M
+        fv = frag.fv.clamp(min=0)
         tri = take(verts, faces)  # [F, 3, 3]
         fn = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+        lights, albedos = self._light_dirs(B, M, C, verts), self._shape_colors(B, verts)
+
+        def shade(fv_idx, normals, points):
+            f = torch.div(fv_idx, M, rounding_mode="floor")
+            img = fv_idx - f * M + take(meshes.shape_of_face(), f) * M
+            return shading.phong(normals, points, take(C, img), take(lights, img), take(albedos, torch.div(img, M, rounding_mode="floor")),
+                                 ambient=c.ambient, diffuse=c.diffuse, specular=c.specular,
+                                 shininess=c.shininess, two_sided=c.two_sided)
+
         if c.shading == "smooth":
+            f = torch.div(fv, M, rounding_mode="floor")
             vn = torch.zeros_like(verts).index_add(0, faces.reshape(-1), fn.repeat_interleave(3, 0))
             normals = (frag.bary[..., None] * take(vn, take(faces, f))).sum(-2)
             points = (frag.bary[..., None] * take(tri, f)).sum(-2)
-        else:
-            normals = take(fn, f)
-            points = take(tri.mean(1), f)
-        light = take(self._light_dirs(B, M, C, verts), img)
-        albedo = take(self._shape_colors(B, verts), img // M)
-        return shading.phong(normals, points, take(C, img), light, albedo, ambient=c.ambient, diffuse=c.diffuse,
-                             specular=c.specular, shininess=c.shininess, two_sided=c.two_sided)
+            return shade(fv, normals, points)
+        # flat: one colour per face and view; shade every face-view once when there are fewer of
+        # them than (pixel, slot) pairs, else shade per pair (same numbers either way)
+        if (len(faces) * M <= fv.numel()) if SHADE_FACE_VIEWS is None else SHADE_FACE_VIEWS:
+            every = torch.arange(len(faces) * M, device=verts.device)
+            f = torch.div(every, M, rounding_mode="floor")
+            return take(shade(every, take(fn, f), take(tri.mean(1), f)), fv)
+        f = torch.div(fv, M, rounding_mode="floor")
+        return shade(fv, take(fn, f), take(tri.mean(1), f))
 
     # ---------------------------------------------------------------- points
     def _render_points(self, clouds: PointClouds, azim, elev, dist) -> RenderOutput:

@@ -100,9 +100,8 @@ def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype
     owner: maps box index -> primitive index (tile-clipped boxes); identity when None.
     """
     if span is None:
-        small = torch.ones_like(sel, dtype=torch.bool)
-    else:
-        small = boxes.sizes().index_select(0, sel) <= small_box
+        return _enumerate_boxes(boxes, sel, H, W, dtype, owner), _enumerate_boxes(boxes, sel[:0], H, W, dtype, owner)
+    small = boxes.sizes().index_select(0, sel) <= small_box
     return (_enumerate_boxes(boxes, sel[small], H, W, dtype, owner),
             _enumerate_rows(boxes, sel[~small], H, W, span, dtype, owner))
 
@@ -258,9 +257,10 @@ def select_nearest(pix: torch.Tensor, depth: torch.Tensor, prim: torch.Tensor, K
     keep = rank < K
     seg = torch.cumsum(first.long(), 0) - 1
     active = sp[first]
-    out = torch.full((len(active), K), -1, dtype=torch.long, device=device)
-    out[seg[keep], rank[keep]] = prim[order[keep]]
-    return Selection(active, out)
+    out = torch.full((len(active) * K,), -1, dtype=torch.long, device=device)
+    kept = torch.nonzero(keep).squeeze(1)
+    out.index_copy_(0, seg.index_select(0, kept) * K + rank.index_select(0, kept), prim.index_select(0, order.index_select(0, kept)))
+    return Selection(active, out.view(-1, K))
 
 
 def merge(selections: list[Selection], K: int, device) -> Selection:
