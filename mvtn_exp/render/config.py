@@ -60,7 +60,7 @@ class RendererConfig:
     lod_faces_per_pixel: float = 0.5
     # search
     tile_size: int = 32
-    max_candidates: int = 1 << 24
+    max_candidates: int = 1 << 21
 
     def validate(self) -> "RendererConfig":
         def one_of(key, allowed):

@@ -135,22 +135,27 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
         x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
         planes = face_planes(x0, y0, x1, y1, x2, y2)
         iz = [1.0 / z0, 1.0 / z1, 1.0 / z2]
-        # row spans: edge k (moved outward by the blur radius plus rounding slack) bounds x at
-        # height y by x = s_k y + t_k, from the left when A_k > 0, from the right when A_k < 0;
-        # edges with A_k = 0 are horizontal and never bound a row inside the face's box
-        A = torch.stack(planes[0::3], 1)
-        Bp = torch.stack(planes[1::3], 1)
-        Cp = torch.stack(planes[2::3], 1) + (blur_radius + 1e-5) * torch.sqrt(A * A + Bp * Bp)
+        # row spans, for the faces whose box goes row by row: edge k (moved outward by the blur
+        # radius plus rounding slack) bounds x at height y by x = s_k y + t_k, from the left when
+        # A_k > 0, from the right when A_k < 0; edges with A_k = 0 are horizontal and never bound
+        # a row inside the face's box
+        small_box = SMALL_BOX_HARD if blur_radius == 0 else tiles.SMALL_BOX
+        big = torch.nonzero(boxes.sizes() > small_box).squeeze(1)
+        row_of = torch.full((len(fv),), -1, dtype=torch.long, device=fv.device)
+        row_of[big] = torch.arange(len(big), device=fv.device)
+        A = torch.stack([planes[k].index_select(0, big) for k in (0, 3, 6)], 1)
+        Bp = torch.stack([planes[k].index_select(0, big) for k in (1, 4, 7)], 1)
+        Cp = torch.stack([planes[k].index_select(0, big) for k in (2, 5, 8)], 1)
+        Cp = Cp + (blur_radius + 1e-5) * torch.sqrt(A * A + Bp * Bp)
         safe = torch.where(A == 0, torch.ones_like(A), A)
         slope, icpt = -Bp / safe, -Cp / safe
         inf = torch.full_like(A, float("inf"))
         zero = torch.zeros_like(A)
-        parts = [torch.where(A > 0, slope, zero), torch.where(A > 0, icpt, -inf),
-                 torch.where(A < 0, slope, zero), torch.where(A < 0, icpt, inf)]
-        rowtab = torch.cat(parts, 1)  # [Fs, 12]
+        rowtab = torch.cat([torch.where(A > 0, slope, zero), torch.where(A > 0, icpt, -inf),
+                            torch.where(A < 0, slope, zero), torch.where(A < 0, icpt, inf)], 1)  # [Fbig, 12]
 
         def span(p, yy):
-            r = rowtab.index_select(0, p)
+            r = rowtab.index_select(0, row_of.index_select(0, p))
             yc = yy[:, None]
             return tiles.columns((r[:, 0:3] * yc + r[:, 3:6]).amax(1), (r[:, 6:9] * yc + r[:, 9:12]).amin(1), W)
 
@@ -159,7 +164,7 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
         table = torch.stack(planes + iz, 1)  # [Fs, 12]: barycentric planes, inverse corner depths
         if blur_radius == 0:
             # hard mode: faces covering each pixel, depth from the barycentric planes
-            for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, SMALL_BOX_HARD):
+            for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, small_box):
                 cand = tiles.concat(parts)
                 t = table.index_select(0, cand.prim)
                 lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]
@@ -169,7 +174,7 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
             return tiles.merge(picks, K, pf.xyz.device)
         # soft mode: candidates within the dilated span, tested exactly against the blur radius
         xy = torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2)
-        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span):
+        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, small_box):
             cand = tiles.concat(parts)
             t = table.index_select(0, cand.prim)
             px, py = cand.x[:, None], cand.y[:, None]
