@@ -37,7 +37,7 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
     Returns a ``tiles.Selection``: pix ``[P]`` ascending flat pixel index ``image*H*W + row*W + col``,
     prim ``[P, 1]`` face-view index; only pixels covered by at least one face appear.
     """
-    dev = pf.xyz.device
+    dev = pf.cols.device
     with torch.no_grad():
         HW = H * W
         fv = torch.nonzero(pf.alive).squeeze(1)
@@ -47,7 +47,7 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
         # group face-views by image; the stable sort keeps them in ascending fv inside each image
         order = torch.sort(img, stable=True).indices
         fv, img = fv.index_select(0, order), img.index_select(0, order)
-        x0, y0, z0, x1, y1, z1, x2, y2, z2 = pf.xyz.index_select(0, fv).reshape(-1, 9).t().contiguous()
+        x0, y0, z0, x1, y1, z1, x2, y2, z2 = pf.cols.index_select(1, fv)
         table = torch.stack(mesh_raster.face_planes(x0, y0, x1, y1, x2, y2) + [1.0 / z0, 1.0 / z1, 1.0 / z2], 1)
         px, py = tiles.pixel_centres(torch.arange(HW, device=dev), H, W, table.dtype)
         px, py = px[None, :, None], py[None, :, None]  # [1, HW, 1]

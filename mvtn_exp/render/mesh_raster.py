@@ -28,20 +28,26 @@ SMALL_BOX_HARD = 2
 class ProjectedFaces:
     """Faces of every view in screen space. Face-view index ``fv = face * M + view``.
 
-    xyz: ``[F*M, 3, 3]`` NDC x, y and depth of each corner, detached (for the search);
+    cols: ``[9, F*M]`` rows x0, y0, z0, x1, y1, z1, x2, y2, z2: NDC x, y and depth of each corner,
+    detached (for the search; one contiguous row per coordinate keeps the per-face work cheap);
     image: ``[F*M]`` flat image index ``b * M + m``; alive: ``[F*M]`` bool (survived culling);
     facing: ``[F*M]`` +1 front (counter-clockwise on screen), -1 back, 0 culled;
     vert_xy ``[V*M, 2]``, vert_z ``[V*M]``: differentiable vertex-view projections;
     fvv: ``[F*M, 3]`` vertex-view index of each face-view's corners.
     """
 
-    xyz: torch.Tensor
+    cols: torch.Tensor
     image: torch.Tensor
     alive: torch.Tensor
     facing: torch.Tensor
     vert_xy: torch.Tensor
     vert_z: torch.Tensor
     fvv: torch.Tensor
+
+    @property
+    def xyz(self) -> torch.Tensor:
+        """``[F*M, 3, 3]`` view: corner, (x, y, depth)."""
+        return self.cols.t().view(-1, 3, 3)
 
     @property
     def xy(self) -> torch.Tensor:
@@ -80,16 +86,16 @@ def area_eps(dtype: torch.dtype, H: int, W: int) -> float:
     return 1e-4 * 4.0 / (H * W) if dtype == torch.float32 else 1e-9 * 4.0 / (H * W)
 
 
-def cull(proj_xy: torch.Tensor, z: torch.Tensor, *, znear: float, cull_backfaces: bool, H: int, W: int):
-    """Culling mask and facing sign for face-views. proj_xy ``[N, 3, 2]``, z ``[N, 3]``.
+def cull(cols: torch.Tensor, *, znear: float, cull_backfaces: bool, H: int, W: int):
+    """Culling mask and facing sign for face-views from corner rows ``[9, N]`` (see ProjectedFaces).
 
     Faces outside the frustum need no test here: their pixel boxes are empty in the search.
     """
     with torch.no_grad():
-        x, y = proj_xy[..., 0], proj_xy[..., 1]
-        area2 = _edge(x[:, 0], y[:, 0], x[:, 1], y[:, 1], x[:, 2], y[:, 2])
-        alive = (z >= znear).all(1)
-        alive &= area2.abs() > area_eps(proj_xy.dtype, H, W)
+        x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
+        area2 = _edge(x0, y0, x1, y1, x2, y2)
+        alive = (z0 >= znear) & (z1 >= znear) & (z2 >= znear)
+        alive &= area2.abs() > area_eps(cols.dtype, H, W)
         if cull_backfaces:
             alive &= area2 > 0
         facing = torch.where(alive, torch.sign(area2), torch.zeros_like(area2)).to(torch.int8)
@@ -117,21 +123,17 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
     by depth), so blur never evicts the surface that is actually there.
     """
     with torch.no_grad():
-        fv = torch.nonzero(pf.alive).squeeze(1)
-        # one transposed copy: nine contiguous [N] corner columns (x0, y0, z0, x1, ...)
-        cols = pf.xyz.index_select(0, fv).reshape(-1, 9).t().contiguous()
-        x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
+        x0, y0, z0, x1, y1, z1, x2, y2, z2 = pf.cols
         boxes = tiles.pixel_boxes(
             torch.minimum(torch.minimum(x0, x1), x2) - blur_radius, torch.maximum(torch.maximum(x0, x1), x2) + blur_radius,
             torch.minimum(torch.minimum(y0, y1), y2) - blur_radius, torch.maximum(torch.maximum(y0, y1), y2) + blur_radius,
-            pf.image.index_select(0, fv), H, W,
+            pf.image, H, W,
         )
-        # faces whose box holds no pixel centre (off-screen, or tiny between centres) stop here
-        nonempty = torch.nonzero(boxes.sizes() > 0).squeeze(1)
-        fv = fv.index_select(0, nonempty)
-        cols = cols.index_select(1, nonempty)
-        boxes = tiles.PixelBoxes(*(t.index_select(0, nonempty) for t in
-                                   (boxes.image, boxes.j0, boxes.j1, boxes.i0, boxes.i1)))
+        # culled faces, and faces whose box holds no pixel centre (off-screen, or tiny between
+        # centres), stop here
+        fv = torch.nonzero(pf.alive & (boxes.sizes() > 0)).squeeze(1)
+        cols = pf.cols.index_select(1, fv)
+        boxes = tiles.PixelBoxes(*(t.index_select(0, fv) for t in (boxes.image, boxes.j0, boxes.j1, boxes.i0, boxes.i1)))
         x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
         planes = face_planes(x0, y0, x1, y1, x2, y2)
         iz = [1.0 / z0, 1.0 / z1, 1.0 / z2]
@@ -171,7 +173,7 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
                 keep = torch.nonzero((lam >= 0).all(1)).squeeze(1)
                 depth = 1.0 / (lam[keep] * t[keep, 9:12]).sum(1).clamp(min=1e-12)
                 picks.append(tiles.select_nearest(cand.pix[keep], depth, fv.index_select(0, cand.prim[keep]), K, num_pixels))
-            return tiles.merge(picks, K, pf.xyz.device)
+            return tiles.merge(picks, K, pf.cols.device)
         # soft mode: candidates within the dilated span, tested exactly against the blur radius
         xy = torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2)
         for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, small_box):
@@ -189,7 +191,7 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
             lam = lam / lam.sum(1, keepdim=True)
             depth = 1.0 / (lam * t[keep, 9:12]).sum(1).clamp(min=1e-12)
             picks.append(tiles.select_nearest(cand.pix[keep], depth, fv.index_select(0, cand.prim[keep]), K, num_pixels, ~inside[keep]))
-        return tiles.merge(picks, K, pf.xyz.device)
+        return tiles.merge(picks, K, pf.cols.device)
 
 
 def _segment_sqdist(ax, ay, bx, by, px, py):
@@ -227,7 +229,7 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
         # hard flat shading needs no per-pixel geometry at all: colours are per face
         return Fragments(sel.pix, sel.prim, valid, None, None, None)
     fv = sel.prim.clamp(min=0)
-    px, py = tiles.pixel_centres(sel.pix, H, W, pf.xyz.dtype)
+    px, py = tiles.pixel_centres(sel.pix, H, W, pf.cols.dtype)
     px, py = px[:, None], py[:, None]
     vv = take(pf.fvv, fv)  # [P, K, 3] vertex-view ids
     xy = take(pf.vert_xy, vv)  # [P, K, 3, 2]

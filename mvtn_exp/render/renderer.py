@@ -165,13 +165,13 @@ class MultiViewRenderer(nn.Module):
         fvv = (meshes.faces[:, None, :] * M + ar[None, :, None]).reshape(-1, 3)  # [F*M, 3] vertex-view ids
         f_image = (meshes.shape_of_face()[:, None] * M + ar).reshape(-1)
         with torch.no_grad():
-            # gather whole rows of M views per corner, then one strided copy to face-view order
+            # gather whole rows of M views per corner, then one strided copy to corner-coordinate rows
             V = len(verts)
             xyz = torch.cat([xy.detach(), z.detach()[:, None]], 1).view(V, M * 3)
-            fxyz = take(xyz, meshes.faces).view(-1, 3, M, 3).permute(0, 2, 1, 3).reshape(-1, 3, 3)
-            alive, facing = mesh_raster.cull(fxyz[..., :2], fxyz[..., 2], znear=c.znear, cull_backfaces=c.cull_backfaces,
+            cols = take(xyz, meshes.faces).view(-1, 3, M, 3).permute(1, 3, 0, 2).reshape(9, -1)  # [9, F*M]
+            alive, facing = mesh_raster.cull(cols, znear=c.znear, cull_backfaces=c.cull_backfaces,
                                              H=c.image_size, W=c.image_size)
-        pf = mesh_raster.ProjectedFaces(fxyz, f_image, alive, facing, xy, z, fvv)
+        pf = mesh_raster.ProjectedFaces(cols, f_image, alive, facing, xy, z, fvv)
         return pf, cams, C.reshape(B * M, 3)
 
     def _interior_edges(self, faces, facing, M) -> torch.Tensor:
