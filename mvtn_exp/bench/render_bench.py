@@ -123,6 +123,10 @@ def prims_of(shape) -> int:
     return int(shape.faces_per_shape[0]) if isinstance(shape, Meshes) else int(shape.points_per_shape[0])
 
 
+# LOD budgets measured (faces per image pixel); the first is the renderer's default
+LOD_FACES_PER_PIXEL = (0.5, 0.25, 0.125)
+
+
 def renderer_for(shape, size: int, K: int, **extra) -> MultiViewRenderer:
     if isinstance(shape, Meshes):
         mode = dict(mode="hard") if K == 1 else dict(mode="soft", faces_per_pixel=K)
@@ -294,12 +298,12 @@ class Bench:
         row.update(search_s=self.times(search), dense_s=self.times(dense), identical=identical)
         self.res.dense.append(row)
 
-    def job_lod(self, name: str) -> None:
+    def job_lod(self, name: str, fpp: float) -> None:
         g = self.grid
         size, M = g.target_size, g.target_views
         mesh = self.shape(name)
         base = renderer_for(mesh, size, 1)
-        r = renderer_for(mesh, size, 1, lod=True)
+        r = renderer_for(mesh, size, 1, lod=True, lod_faces_per_pixel=fpp)
         v = Views(M, 1, self.dev)
         budget = lod.face_budget(size, r.cfg.lod_faces_per_pixel)
         # one-off: the simplification the renderer caches (this call fills the cache)
@@ -324,7 +328,7 @@ class Bench:
         union = int((ma | mb).sum())
         iou = float(int((ma & mb).sum()) / union) if union else 1.0
         faces_after = int(b.stats["lod_faces"][1]) if "lod_faces" in b.stats else int(simple.faces_per_shape.sum())
-        self.res.lod.append(dict(shape=name, prims=prims_of(mesh), faces_after=faces_after, budget=budget, size=size,
+        self.res.lod.append(dict(shape=name, fpp=fpp, prims=prims_of(mesh), faces_after=faces_after, budget=budget, size=size,
                                  views=M, K=1, no_lod_fwd_bwd_s=t_ref, lod_fwd_bwd_s=t_lod, simplify_s=simplify_s,
                                  first_call_s=first_s, image_mae=mae, silhouette_iou=iou))
 
@@ -358,7 +362,8 @@ class Bench:
         out += [(f"time {n} {s}px M={m} K={k}", lambda a=(n, s, m, k): self.job_render_time(*a)) for n, s, m, k in configs]
         out += [(f"dense {name} {size}px M={M}", lambda a=(name, size, M): self.job_dense(*a))
                 for name in g.meshes for size in g.sizes for M in g.views]
-        out += [(f"lod {name}", lambda n=name: self.job_lod(n)) for name in g.lod_meshes]
+        out += [(f"lod {name} {fpp} faces/px", lambda n=name, f=fpp: self.job_lod(n, f))
+                for name in g.lod_meshes for fpp in LOD_FACES_PER_PIXEL]
         return out
 
     def job_speed_mode(self) -> None:
@@ -416,15 +421,15 @@ def targets(bench: Bench) -> list[dict]:
                          bench.find_grid("points-2048", S, M, 8), 0.1))
 
     small, big = bench.find_grid("torus-2k", S, M, 1), bench.find_grid("torus-100k", S, M, 1)
-    lod_big = next((r for r in res.lod if r["shape"] == "torus-100k"), None)
+    lod_big = next((r for r in res.lod if r["shape"] == "torus-100k" and r["fpp"] == LOD_FACES_PER_PIXEL[0]), None)
     for label, big_s in (("without LOD", big["fwd_bwd_s"] if big else None),
-                         ("with LOD", lod_big["lod_fwd_bwd_s"] if lod_big else None)):
+                         (f"with LOD ({LOD_FACES_PER_PIXEL[0]:g} faces/px)", lod_big["lod_fwd_bwd_s"] if lod_big else None)):
         title = f"100k-face vs 2k-face mesh, {S} px, {M} views, K=1 fwd+bwd, {label}"
         if small is None or big_s is None:
             out.append(_target(title, "-", "<= 2 x", None, quick))
             continue
         a, b = med_ms(big_s), med_ms(small["fwd_bwd_s"])
-        note = " (2k is under the LOD budget: unchanged)" if label == "with LOD" else ""
+        note = " (2k is under the LOD budget: unchanged)" if label.startswith("with LOD") else ""
         out.append(_target(title, f"{a:.1f} ms / {b:.1f} ms = {a / b:.2f} x{note}", "<= 2 x", a / b <= 2.0, value=a / b, limit=2.0))
 
     for kind, desc in (("mesh", "20k-face mesh, K=1"), ("points", "2048 points, K=8")):
@@ -528,11 +533,11 @@ def to_markdown(res: Results) -> str:
         for r in res.lod:
             a, b = med_ms(r["no_lod_fwd_bwd_s"]), med_ms(r["lod_fwd_bwd_s"])
             after = f"{r['faces_after']}" + (" (under budget)" if r["faces_after"] == r["prims"] else "")
-            rows.append([r["shape"], r["prims"], after, r["budget"], f"{a:.1f}", f"{b:.1f}", f"{a / b:.2f} x", f"{r['simplify_s']:.2f}",
+            rows.append([r["shape"], r["prims"], r["fpp"], after, r["budget"], f"{a:.1f}", f"{b:.1f}", f"{a / b:.2f} x", f"{r['simplify_s']:.2f}",
                          f"{r['first_call_s']:.2f}", f"{r['image_mae']:.4f}", f"{r['silhouette_iou']:.4f}"])
         S, M = res.lod[0]["size"], res.lod[0]["views"]
-        parts.append(f"## Level of detail ({S} px, {M} views, K=1, forward+backward; lod_faces_per_pixel default)\n\n"
-                     + md_table(["mesh", "faces", "faces after LOD", "budget", "no LOD ms", "LOD ms", "speed-up", "simplify s (one-off)",
+        parts.append(f"## Level of detail ({S} px, {M} views, K=1, forward+backward)\n\n"
+                     + md_table(["mesh", "faces", "lod_faces_per_pixel", "faces after LOD", "budget", "no LOD ms", "LOD ms", "speed-up", "simplify s (one-off)",
                                  "first LOD call s", "image MAE", "silhouette IoU"], rows)
                      + "\n\nLOD times exclude the first call; the simplification is timed once on its own (it is cached afterwards).")
     else:

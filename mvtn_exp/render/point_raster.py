@@ -44,9 +44,8 @@ def point_alphas(xy: torch.Tensor, sel: tiles.Selection, *, H: int, W: int, radi
     ``opacity * (1 - d^2/r^2)^2``, C1 at the rim so camera gradients stay bounded.
     """
     P, K = sel.prim.shape
-    slot = torch.nonzero(sel.prim.reshape(-1) >= 0).squeeze(1)  # occupied slots, flat
-    row = torch.div(slot, K, rounding_mode="floor")
-    px, py = (t.index_select(0, row) for t in tiles.pixel_centres(sel.pix, H, W, xy.dtype))
+    slot = sel.occupied()
+    px, py = tiles.pixel_centres(sel.pix.index_select(0, torch.div(slot, K, rounding_mode="floor")), H, W, xy.dtype)
     p = take(xy, sel.prim.reshape(-1).index_select(0, slot))
     d2 = (p[:, 0] - px) ** 2 + (p[:, 1] - py) ** 2
     t = (1 - d2 / (radius * radius)).clamp(min=0)

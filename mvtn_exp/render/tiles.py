@@ -50,6 +50,10 @@ class Selection:
     pix: torch.Tensor
     prim: torch.Tensor
 
+    def occupied(self) -> torch.Tensor:
+        """Flat indices into ``prim.view(-1)`` of the used slots ``[S]``, ascending."""
+        return torch.nonzero(self.prim.reshape(-1) >= 0).squeeze(1)
+
 
 def pixel_boxes(xmin, xmax, ymin, ymax, image, H: int, W: int) -> PixelBoxes:
     """NDC extents ``[N]`` -> inclusive pixel-centre index boxes clipped to the ``H x W`` image."""
