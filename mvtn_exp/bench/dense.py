@@ -43,7 +43,7 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
         fv = torch.nonzero(pf.alive).squeeze(1)
         if len(fv) == 0:
             return tiles.Selection(torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, 1, dtype=torch.long, device=dev))
-        img = pf.image.index_select(0, fv)
+        img = pf.image_of(fv)
         # group face-views by image; the stable sort keeps them in ascending fv inside each image
         order = torch.sort(img, stable=True).indices
         fv, img = fv.index_select(0, order), img.index_select(0, order)
@@ -51,7 +51,7 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
         table = torch.stack(mesh_raster.face_planes(x0, y0, x1, y1, x2, y2) + [1.0 / z0, 1.0 / z1, 1.0 / z2], 1)
         px, py = tiles.pixel_centres(torch.arange(HW, device=dev), H, W, table.dtype)
         px, py = px[None, :, None], py[None, :, None]  # [1, HW, 1]
-        num_images = int(pf.image.max()) + 1
+        num_images = pf.num_images
         best_depth = torch.full((num_images, HW), float("inf"), dtype=table.dtype, device=dev)
         best_fv = torch.full((num_images, HW), -1, dtype=torch.long, device=dev)
         images, counts = torch.unique_consecutive(img, return_counts=True)

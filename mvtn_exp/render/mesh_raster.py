@@ -30,19 +30,37 @@ class ProjectedFaces:
 
     cols: ``[9, F*M]`` rows x0, y0, z0, x1, y1, z1, x2, y2, z2: NDC x, y and depth of each corner,
     detached (for the search; one contiguous row per coordinate keeps the per-face work cheap);
-    image: ``[F*M]`` flat image index ``b * M + m``; alive: ``[F*M]`` bool (survived culling);
-    facing: ``[F*M]`` +1 front (counter-clockwise on screen), -1 back, 0 culled;
-    vert_xy ``[V*M, 2]``, vert_z ``[V*M]``: differentiable vertex-view projections;
-    fvv: ``[F*M, 3]`` vertex-view index of each face-view's corners.
+    alive: ``[F*M]`` bool (survived culling); facing: ``[F*M]`` +1 front (counter-clockwise on
+    screen), -1 back, 0 culled; vert_xy ``[V*M, 2]``, vert_z ``[V*M]``: differentiable vertex-view
+    projections (vertex-view index ``v * M + view``); faces ``[F, 3]``; shape_of_face ``[F]``;
+    views: M; num_images: B * M. Per-face-view indices are derived on demand for the faces that
+    need them (``image_of``, ``corners_of``), never stored for all F*M.
     """
 
     cols: torch.Tensor
-    image: torch.Tensor
     alive: torch.Tensor
     facing: torch.Tensor
     vert_xy: torch.Tensor
     vert_z: torch.Tensor
-    fvv: torch.Tensor
+    faces: torch.Tensor
+    shape_of_face: torch.Tensor
+    views: int
+    num_images: int
+
+    def image_of(self, fv: torch.Tensor) -> torch.Tensor:
+        """Flat image index ``b * M + m`` of face-views ``fv`` (any shape)."""
+        f = torch.div(fv, self.views, rounding_mode="floor")
+        return take(self.shape_of_face, f) * self.views + (fv - f * self.views)
+
+    def corners_of(self, fv: torch.Tensor) -> torch.Tensor:
+        """Vertex-view indices ``[..., 3]`` of the corners of face-views ``fv``."""
+        f = torch.div(fv, self.views, rounding_mode="floor")
+        return take(self.faces, f) * self.views + (fv - f * self.views).unsqueeze(-1)
+
+    @property
+    def image(self) -> torch.Tensor:
+        """``[F*M]`` flat image index of every face-view."""
+        return self.image_of(torch.arange(self.cols.shape[1], device=self.cols.device))
 
     @property
     def xyz(self) -> torch.Tensor:
@@ -127,13 +145,13 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
         boxes = tiles.pixel_boxes(
             torch.minimum(torch.minimum(x0, x1), x2) - blur_radius, torch.maximum(torch.maximum(x0, x1), x2) + blur_radius,
             torch.minimum(torch.minimum(y0, y1), y2) - blur_radius, torch.maximum(torch.maximum(y0, y1), y2) + blur_radius,
-            pf.image, H, W,
+            None, H, W,
         )
         # culled faces, and faces whose box holds no pixel centre (off-screen, or tiny between
         # centres), stop here
         fv = torch.nonzero(pf.alive & (boxes.sizes() > 0)).squeeze(1)
         cols = pf.cols.index_select(1, fv)
-        boxes = tiles.PixelBoxes(*(t.index_select(0, fv) for t in (boxes.image, boxes.j0, boxes.j1, boxes.i0, boxes.i1)))
+        boxes = tiles.PixelBoxes(pf.image_of(fv), *(t.index_select(0, fv) for t in (boxes.j0, boxes.j1, boxes.i0, boxes.i1)))
         x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
         planes = face_planes(x0, y0, x1, y1, x2, y2)
         iz = [1.0 / z0, 1.0 / z1, 1.0 / z2]
@@ -161,7 +179,7 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
             yc = yy[:, None]
             return tiles.columns((r[:, 0:3] * yc + r[:, 3:6]).amax(1), (r[:, 6:9] * yc + r[:, 9:12]).amin(1), W)
 
-        num_pixels = (int(pf.image.max()) + 1) * H * W if len(pf.image) else 0
+        num_pixels = pf.num_images * H * W
         picks = []
         table = torch.stack(planes + iz, 1)  # [Fs, 12]: barycentric planes, inverse corner depths
         if blur_radius == 0:
@@ -231,7 +249,7 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
     fv = sel.prim.clamp(min=0)
     px, py = tiles.pixel_centres(sel.pix, H, W, pf.cols.dtype)
     px, py = px[:, None], py[:, None]
-    vv = take(pf.fvv, fv)  # [P, K, 3] vertex-view ids
+    vv = pf.corners_of(fv)  # [P, K, 3] vertex-view ids
     xy = take(pf.vert_xy, vv)  # [P, K, 3, 2]
     fx, fy = xy[..., 0], xy[..., 1]
     a = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2])

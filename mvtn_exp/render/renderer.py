@@ -124,7 +124,7 @@ class MultiViewRenderer(nn.Module):
         verts = meshes.verts
         blur = c.effective_blur()
         K = c.effective_k()
-        pf, cams, C = self.project_faces(meshes, azim, elev, dist)
+        pf, _, C = self.project_faces(meshes, azim, elev, dist)
         alive, facing = pf.alive, pf.facing
         sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates)
         stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix))
@@ -161,9 +161,6 @@ class MultiViewRenderer(nn.Module):
         cams = self._cameras(azim.to(verts.dtype), elev.to(verts.dtype), dist.to(verts.dtype))
         xy, z, _ = self._project(verts, meshes.verts_per_shape, cams)
         C = cams.frames()[1]
-        ar = torch.arange(M, device=verts.device)
-        fvv = (meshes.faces[:, None, :] * M + ar[None, :, None]).reshape(-1, 3)  # [F*M, 3] vertex-view ids
-        f_image = (meshes.shape_of_face()[:, None] * M + ar).reshape(-1)
         with torch.no_grad():
             # gather whole rows of M views per corner, then one strided copy to corner-coordinate rows
             V = len(verts)
@@ -171,7 +168,7 @@ class MultiViewRenderer(nn.Module):
             cols = take(xyz, meshes.faces).view(-1, 3, M, 3).permute(1, 3, 0, 2).reshape(9, -1)  # [9, F*M]
             alive, facing = mesh_raster.cull(cols, znear=c.znear, cull_backfaces=c.cull_backfaces,
                                              H=c.image_size, W=c.image_size)
-        pf = mesh_raster.ProjectedFaces(cols, f_image, alive, facing, xy, z, fvv)
+        pf = mesh_raster.ProjectedFaces(cols, alive, facing, xy, z, meshes.faces, meshes.shape_of_face(), M, B * M)
         return pf, cams, C.reshape(B * M, 3)
 
     def _interior_edges(self, faces, facing, M) -> torch.Tensor:

@@ -28,7 +28,8 @@ import torch
 
 @dataclass
 class PixelBoxes:
-    """Inclusive pixel boxes of primitives. All ``[N]`` long; empty when ``j1 < j0`` or ``i1 < i0``."""
+    """Inclusive pixel boxes of primitives. All ``[N]`` long (image may be None until known); empty when
+    ``j1 < j0`` or ``i1 < i0``."""
 
     image: torch.Tensor
     j0: torch.Tensor
