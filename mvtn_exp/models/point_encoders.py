@@ -1,0 +1,219 @@
+"""Point-cloud encoders (the MVTN selector's shape encoder) and dense point sampling.
+
+* ``PointNet`` (Qi et al. 2017): shared MLP 3 -> 64 -> 128 -> 1024 (Conv1d k=1 + BatchNorm +
+  ReLU), global max-pool, projection to ``out_features`` (MVTN's b = 40). The input 3x3 T-net is
+  optional (``use_tnet``); the feature T-net is not implemented (MVTN does not use it).
+* ``sample_points(shapes, n)``: a ``PointClouds`` / ``Meshes`` batch -> dense ``[B, n, 3]``.
+* ``POINT_ENCODERS`` / ``build_point_encoder``: the registry.
+
+Every encoder maps points ``[B, N, 3] -> [B, out_features]`` and exposes ``out_features``.
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional, Sequence, Union
+
+import torch
+from torch import Tensor, nn
+
+from mvtn_exp.data.shapes import Meshes, PointClouds
+
+
+def _check_points(name: str, points: Tensor) -> None:
+    if points.dim() != 3 or points.shape[-1] != 3:
+        raise ValueError(f"{name} expects points [B, N, 3], got {list(points.shape)}")
+    if points.shape[1] == 0:
+        raise ValueError(f"{name} got point clouds with N = 0 points; nothing to max-pool")
+
+
+def _shared_mlp(widths: Sequence[int]) -> nn.Sequential:
+    """Per-point MLP ``[B, widths[0], N] -> [B, widths[-1], N]`` (Conv1d k=1 + BN + ReLU each)."""
+    layers: list[nn.Module] = []
+    for cin, cout in zip(widths[:-1], widths[1:]):
+        layers += [nn.Conv1d(cin, cout, 1, bias=False), nn.BatchNorm1d(cout), nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers)
+
+
+def _fc_stack(widths: Sequence[int]) -> nn.Sequential:
+    """Per-shape MLP ``[B, widths[0]] -> [B, widths[-1]]`` (Linear + BN + ReLU each)."""
+    layers: list[nn.Module] = []
+    for cin, cout in zip(widths[:-1], widths[1:]):
+        layers += [nn.Linear(cin, cout, bias=False), nn.BatchNorm1d(cout), nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers)
+
+
+class InputTNet(nn.Module):
+    """PointNet's input transform network: points ``[B, N, 3]`` -> 3x3 matrices ``[B, 3, 3]``.
+
+    Shared MLP 3 -> 64 -> 128 -> 1024, max-pool, FC 1024 -> 512 -> 256 -> 9. The last layer is
+    initialised to zero weights and an identity bias, so the transform starts as the identity.
+    Its FC layers use BatchNorm, so training mode needs B >= 2.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.mlp = _shared_mlp((3, 64, 128, 1024))
+        self.fc = _fc_stack((1024, 512, 256))
+        self.out = nn.Linear(256, 9)
+        nn.init.zeros_(self.out.weight)
+        with torch.no_grad():
+            self.out.bias.copy_(torch.eye(3).flatten())
+
+    def forward(self, points: Tensor) -> Tensor:
+        x = self.mlp(points.transpose(1, 2)).amax(dim=2)  # [B, 1024]
+        return self.out(self.fc(x)).view(-1, 3, 3)
+
+
+class PointNet(nn.Module):
+    """PointNet encoder: points ``[B, N, 3]`` -> features ``[B, out_features]``.
+
+    ``use_tnet``: apply the learned input 3x3 transform first (``points @ T``); off by default.
+    ``head_widths``: hidden widths between the 1024-d global feature and the output
+    (Linear + BN + ReLU each). Default ``()`` = a single linear projection 1024 -> out_features;
+    ``(512, 256)`` gives PointNet's classification head (without dropout).
+    The global max-pool makes the output invariant to the order of the points.
+    """
+
+    feature_dim = 1024
+
+    def __init__(self, out_features: int = 40, use_tnet: bool = False, head_widths: Sequence[int] = ()) -> None:
+        super().__init__()
+        if int(out_features) != out_features or out_features < 1:
+            raise ValueError(f"PointNet: out_features must be an integer >= 1, got {out_features!r}")
+        self.out_features = int(out_features)
+        self.use_tnet = bool(use_tnet)
+        self.tnet = InputTNet() if self.use_tnet else None
+        self.mlp = _shared_mlp((3, 64, 128, self.feature_dim))
+        widths = (self.feature_dim, *[int(w) for w in head_widths])
+        self.head = nn.Sequential(_fc_stack(widths), nn.Linear(widths[-1], self.out_features))
+
+    def global_features(self, points: Tensor) -> Tensor:
+        """``[B, N, 3] -> [B, 1024]`` max-pooled per-point features."""
+        _check_points(type(self).__name__, points)
+        if self.tnet is not None:
+            points = torch.bmm(points, self.tnet(points))
+        return self.mlp(points.transpose(1, 2)).amax(dim=2)
+
+    def forward(self, points: Tensor) -> Tensor:
+        """``[B, N, 3] -> [B, out_features]``."""
+        return self.head(self.global_features(points))
+
+
+def pointnet(out_features: int = 40, **kw) -> PointNet:
+    return PointNet(out_features=out_features, **kw)
+
+
+POINT_ENCODERS: dict[str, Callable[..., nn.Module]] = {
+    "pointnet": pointnet,
+}
+
+
+def build_point_encoder(name: str, out_features: int = 40, **kw) -> nn.Module:
+    """Build a registered point encoder: ``[B, N, 3] -> [B, out_features]``."""
+    if name not in POINT_ENCODERS:
+        raise ValueError(f"unknown point encoder {name!r}; allowed: {', '.join(sorted(POINT_ENCODERS))}")
+    return POINT_ENCODERS[name](out_features=out_features, **kw)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sampling a batch of shapes into a dense [B, n, 3] tensor
+# ---------------------------------------------------------------------------------------------
+
+def _rng_device(generator: Optional[torch.Generator], fallback: torch.device) -> torch.device:
+    return generator.device if generator is not None else fallback
+
+
+def _report_empty(names: Sequence[str], empty: Sequence[int], what: str, allow_empty: bool) -> None:
+    if empty and not allow_empty:
+        listed = ", ".join(f"'{names[i]}' (batch index {i})" for i in empty)
+        raise ValueError(f"sample_points: shape {listed} {what}; drop it or pass allow_empty=True "
+                         "to get zeros")
+
+
+def _sample_clouds(clouds: PointClouds, n: int, generator, allow_empty: bool) -> Tensor:
+    pts = clouds.points
+    counts = clouds.points_per_shape.tolist()
+    rng_dev = _rng_device(generator, pts.device)
+    empty = [i for i, c in enumerate(counts) if c == 0]
+    _report_empty(clouds.names, empty, "has no points", allow_empty)
+    out = []
+    for part, c in zip(torch.split(pts, counts), counts):
+        if c == 0:
+            out.append(pts.new_zeros(n, 3))
+            continue
+        if c == n:
+            idx = torch.arange(n, device=rng_dev)
+        elif c > n:  # uniform random subset, without replacement
+            idx = torch.randperm(c, generator=generator, device=rng_dev)[:n]
+        else:  # every point once, plus n - c extra points drawn uniformly with replacement
+            extra = torch.randint(0, c, (n - c,), generator=generator, device=rng_dev)
+            idx = torch.cat([torch.arange(c, device=rng_dev), extra])
+        out.append(part[idx.to(pts.device)])
+    if not out:
+        return pts.new_zeros(0, n, 3)
+    return torch.stack(out)
+
+
+def _sample_meshes(meshes: Meshes, n: int, generator, allow_empty: bool) -> Tensor:
+    verts, faces = meshes.verts, meshes.faces
+    B = len(meshes)
+    if B == 0:
+        return verts.new_zeros(0, n, 3)
+    tri = verts[faces]  # [F, 3, 3]
+    areas = 0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1)
+    F_per = meshes.faces_per_shape
+    shape_of_face = meshes.shape_of_face()
+    face_offsets = torch.cumsum(F_per, 0) - F_per
+    local = torch.arange(len(faces), device=faces.device) - face_offsets[shape_of_face]
+    Fmax = max(int(F_per.max()), 1)
+    padded = areas.new_zeros(B, Fmax).detach()
+    padded[shape_of_face, local] = areas.detach()
+    total = padded.sum(1)
+    empty = [i for i in range(B) if not float(total[i]) > 0.0]
+    _report_empty(meshes.names, empty, "has no surface to sample (no faces, or zero total area)", allow_empty)
+    if len(empty) == B:
+        return verts.new_zeros(B, n, 3)
+    rng_dev = _rng_device(generator, verts.device)
+    weights = padded.to(rng_dev, torch.float64)
+    if empty:
+        weights[empty] = 1.0  # placeholder rows; their samples are replaced by zeros below
+    choice = torch.multinomial(weights, n, replacement=True, generator=generator)  # [B, n] local
+    r = torch.rand(B, n, 2, generator=generator, device=rng_dev, dtype=torch.float64)
+    choice, r = choice.to(verts.device), r.to(device=verts.device, dtype=verts.dtype)
+    global_face = (face_offsets[:, None] + choice).clamp(max=len(faces) - 1)  # clamp: placeholder rows only
+    s = r[..., 0].sqrt()  # uniform barycentrics on a triangle: (1 - sqrt r1, sqrt r1 (1 - r2), sqrt r1 r2)
+    bary = torch.stack([1.0 - s, s * (1.0 - r[..., 1]), s * r[..., 1]], -1)  # [B, n, 3]
+    points = torch.einsum("bnk,bnkc->bnc", bary, tri[global_face])
+    if empty:
+        keep = torch.ones(B, 1, 1, dtype=points.dtype, device=points.device)
+        keep[empty] = 0.0
+        points = points * keep
+    return points
+
+
+def sample_points(shapes: Union[PointClouds, Meshes, Tensor], n: int, generator: Optional[torch.Generator] = None,
+                  allow_empty: bool = False) -> Tensor:
+    """A batch of B shapes -> dense points ``[B, n, 3]`` (dtype / device of the shapes).
+
+    * ``PointClouds`` (or a dense ``[B, N, 3]`` tensor): a cloud of exactly n points is returned
+      as is; more than n: a uniform random subset without replacement; fewer than n: every point
+      once plus ``n - c`` points drawn uniformly with replacement (no bias towards the first
+      points).
+    * ``Meshes``: area-weighted uniform sampling of the surface (faces drawn with probability
+      proportional to their area, then uniform barycentrics). Differentiable w.r.t. the vertices.
+
+    ``generator``: a ``torch.Generator`` makes the result deterministic; without it torch's global
+    generator is used. An empty shape (no points; a mesh with no faces or zero area) raises a
+    ``ValueError`` naming it, unless ``allow_empty=True``, in which case its rows are zeros.
+    """
+    if isinstance(n, bool) or int(n) != n or n < 1:
+        raise ValueError(f"sample_points: n must be an integer >= 1, got {n!r}")
+    n = int(n)
+    if isinstance(shapes, Tensor):
+        if shapes.dim() != 3 or shapes.shape[-1] != 3:
+            raise ValueError(f"sample_points: a tensor must be [B, N, 3], got {list(shapes.shape)}")
+        shapes = PointClouds.from_padded(shapes)
+    if isinstance(shapes, Meshes):
+        return _sample_meshes(shapes, n, generator, allow_empty)
+    if isinstance(shapes, PointClouds):
+        return _sample_clouds(shapes, n, generator, allow_empty)
+    raise TypeError(f"sample_points: expected PointClouds, Meshes or a [B, N, 3] tensor, got {type(shapes).__name__}")

@@ -1,0 +1,51 @@
+"""View selectors: ``forward(points [B, N, 3]) -> (azim, elev, dist)``, each ``[B, M]``.
+
+Fixed layouts live in ``fixed.py``, the learned MVTN regressor in ``mvtn.py``; ``SELECTORS`` /
+``build_selector`` is the registry the configs use.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+from mvtn_exp.selectors.fixed import (CircularSelector, RandomSelector, SphericalSelector, ViewSelector,
+                                      check_views)
+from mvtn_exp.selectors.mvtn import VARIANTS, MVTNSelector
+
+
+def mvtn_direct(views: int, **kw) -> MVTNSelector:
+    """MVTN regressing the views almost freely (azimuth offset +-180, elevation +-90)."""
+    return MVTNSelector(views, "direct", **kw)
+
+
+def mvtn_circular(views: int, **kw) -> MVTNSelector:
+    """MVTN offsets (+-180/M azimuth, +-90 elevation) around the circular layout."""
+    return MVTNSelector(views, "circular", **kw)
+
+
+def mvtn_spherical(views: int, **kw) -> MVTNSelector:
+    """MVTN offsets (+-180/M azimuth, +-90 elevation) around the spherical layout."""
+    return MVTNSelector(views, "spherical", **kw)
+
+
+SELECTORS: dict[str, Callable[..., ViewSelector]] = {
+    "circular": CircularSelector,
+    "spherical": SphericalSelector,
+    "random": RandomSelector,
+    "mvtn_direct": mvtn_direct,
+    "mvtn_circular": mvtn_circular,
+    "mvtn_spherical": mvtn_spherical,
+}
+
+
+def build_selector(name: str, views: int, **kw) -> ViewSelector:
+    """Build a registered selector with M = ``views``."""
+    if name not in SELECTORS:
+        raise ValueError(f"unknown selector {name!r}; allowed: {', '.join(sorted(SELECTORS))}")
+    check_views(views)
+    return SELECTORS[name](views, **kw)
+
+
+__all__ = [
+    "SELECTORS", "VARIANTS", "CircularSelector", "MVTNSelector", "RandomSelector", "SphericalSelector",
+    "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct", "mvtn_spherical",
+]

@@ -1,0 +1,127 @@
+"""Fixed (non-learned) view selectors: circular, spherical and random camera layouts.
+
+Every selector is an ``nn.Module`` with the same interface:
+
+    forward(points [B, N, 3]) -> (azim [B, M], elev [B, M], dist [B, M])
+
+angles in degrees, distance in world units (conventions in ``mvtn_exp.render.cameras``), on the
+device and in the floating dtype of ``points``. Attributes: ``views`` (M) and ``learned`` (bool).
+Fixed selectors only read the batch size, device and dtype of ``points``.
+"""
+from __future__ import annotations
+
+import operator
+
+import torch
+from torch import Tensor, nn
+
+from mvtn_exp.render import layouts
+
+Views = tuple[Tensor, Tensor, Tensor]
+
+
+def check_views(views) -> int:
+    """``views`` must be an integer >= 1 (bool, float and str are rejected, even 4.0)."""
+    m = None
+    if not isinstance(views, bool):
+        try:
+            m = operator.index(views)
+        except TypeError:
+            m = None
+    if m is None or m < 1:
+        raise ValueError(f"views: expected an integer number of views M >= 1, got {views!r}")
+    return int(m)
+
+
+class ViewSelector(nn.Module):
+    """Base class: ``forward(points [B, N, 3]) -> (azim, elev, dist)``, each ``[B, M]``."""
+
+    learned: bool = False
+
+    def __init__(self, views: int) -> None:
+        super().__init__()
+        self.views = check_views(views)
+
+    def _check_points(self, points: Tensor) -> None:
+        if not isinstance(points, Tensor) or points.dim() != 3 or points.shape[-1] != 3:
+            shape = list(points.shape) if isinstance(points, Tensor) else type(points).__name__
+            raise ValueError(f"{type(self).__name__} expects points [B, N, 3], got {shape}")
+
+    @staticmethod
+    def _dtype(points: Tensor) -> torch.dtype:
+        return points.dtype if points.is_floating_point() else torch.get_default_dtype()
+
+    def extra_repr(self) -> str:
+        return f"views={self.views}"
+
+
+class CircularSelector(ViewSelector):
+    """M views at one ``elevation``, azimuths ``360 k / M``; same for every shape."""
+
+    def __init__(self, views: int, elevation: float = 30.0, distance: float = 2.2) -> None:
+        super().__init__(views)
+        self.elevation, self.distance = float(elevation), float(distance)
+
+    def forward(self, points: Tensor) -> Views:
+        """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]``."""
+        self._check_points(points)
+        return layouts.circular(self.views, points.shape[0], self.elevation, self.distance,
+                                device=points.device, dtype=self._dtype(points))
+
+
+class SphericalSelector(ViewSelector):
+    """Exactly M near-uniform views on the sphere (Fibonacci lattice); same for every shape."""
+
+    def __init__(self, views: int, distance: float = 2.2) -> None:
+        super().__init__(views)
+        self.distance = float(distance)
+
+    def forward(self, points: Tensor) -> Views:
+        """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]``."""
+        self._check_points(points)
+        return layouts.spherical(self.views, points.shape[0], self.distance,
+                                 device=points.device, dtype=self._dtype(points))
+
+
+def random_directions(shape: tuple[int, ...], generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    """Directions uniform on the sphere: azimuth ~ U[0, 360), elevation = asin(U[-1, 1]) (degrees).
+
+    Drawn on the CPU in float64 (so a seed gives the same views on every device). Returns
+    ``(azim, elev)``, each of ``shape``.
+    """
+    u = torch.rand(2, *shape, generator=generator, dtype=torch.float64)
+    azim = u[0] * 360.0
+    elev = torch.rad2deg(torch.asin((2.0 * u[1] - 1.0).clamp(-1.0, 1.0)))
+    return azim, elev
+
+
+class RandomSelector(ViewSelector):
+    """Random directions, uniform on the sphere, at a fixed ``distance``.
+
+    Training mode: new views for every shape at every call, drawn from torch's *global* generator
+    (so ``torch.manual_seed`` makes a run reproducible). Eval mode: one set of M views drawn once
+    from ``seed`` with a private generator, identical for every call and every shape.
+    """
+
+    def __init__(self, views: int, distance: float = 2.2, seed: int = 0) -> None:
+        super().__init__(views)
+        self.distance, self.seed = float(distance), int(seed)
+        azim, elev = random_directions((self.views,), torch.Generator().manual_seed(self.seed))
+        # Non-persistent: a pure function of (views, seed), so checkpoints need not carry it.
+        self.register_buffer("eval_azim", azim, persistent=False)
+        self.register_buffer("eval_elev", elev, persistent=False)
+
+    def forward(self, points: Tensor) -> Views:
+        """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]``."""
+        self._check_points(points)
+        B, dtype, device = points.shape[0], self._dtype(points), points.device
+        if self.training:
+            azim, elev = random_directions((B, self.views))
+        else:
+            azim, elev = self.eval_azim.expand(B, -1), self.eval_elev.expand(B, -1)
+        azim = azim.to(device=device, dtype=dtype).clone()
+        elev = elev.to(device=device, dtype=dtype).clone()
+        return azim, elev, torch.full_like(azim, self.distance)
+
+    def extra_repr(self) -> str:
+        return f"views={self.views}, distance={self.distance}, seed={self.seed}"

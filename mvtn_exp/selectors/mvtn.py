@@ -1,0 +1,133 @@
+"""Learned view selection: the MVTN regressor (Hamdi et al., ICCV 2021, Sec. 3.2).
+
+    u = u0 + u_bound * tanh(G(S, u0))
+
+``G`` is a point encoder (PointNet, b = 40 features) followed by an MLP over
+``concat(features [B, b], u0 [B, 2M])``: ``b + 2M -> b -> b -> 5M -> 2M`` (BatchNorm + ReLU
+between hidden layers, last layer linear). ``u0`` enters normalised (azimuth / 180,
+elevation / 90). The MLP output is split into M azimuth offsets and M elevation offsets (plus M
+distance offsets when ``learn_distance``).
+
+What each variant learns (both angles are learned per view and per shape in every variant):
+
+==========  ======================================  ==========================  ================
+variant     u0 (initial views)                      azimuth offset bound        elevation bound
+==========  ======================================  ==========================  ================
+circular    ``layouts.circular`` (elevation 30)     +-180 / M                   +-90
+spherical   ``layouts.spherical`` (Fibonacci)       +-180 / M                   +-90
+direct      ``layouts.spherical`` (Fibonacci)       +-180 (any azimuth)         +-90
+==========  ======================================  ==========================  ================
+
+"direct" regresses the views almost freely; it also starts from the spherical layout (not from
+zero) so that at initialisation its M views are distinct, and so that the regressor input u0 is
+informative. Angles are neither wrapped nor clamped (that would cut gradients): an elevation
+beyond +-90 degrees is a valid camera (``mvtn_exp.render.cameras`` is smooth there), and it is
+the camera over the pole at azimuth + 180.
+
+Distance: constant ``distance`` unless ``learn_distance``, then
+``distance + distance_bound * tanh(extra M outputs)``.
+
+Initialisation: the last linear layer's weights and bias are zero, so at initialisation
+``u == u0`` exactly. Gradients still flow because ``tanh'(0) = 1``: on the first step the loss
+gradient reaches the last layer (its inputs are non-zero), and once that layer is non-zero it
+reaches the hidden layers and the point encoder too (at the very first step their gradient is
+exactly zero, since the zero weights block it).
+
+``u_bound`` (buffer ``[3]``: azimuth, elevation in degrees, distance in world units; the
+distance bound is 0 when the distance is not learned) is the one place the bounds are defined.
+"""
+from __future__ import annotations
+
+from typing import Optional, Union
+
+import torch
+from torch import Tensor, nn
+
+from mvtn_exp.models.point_encoders import build_point_encoder
+from mvtn_exp.render import layouts
+from mvtn_exp.selectors.fixed import ViewSelector, Views
+
+VARIANTS = ("direct", "circular", "spherical")
+
+
+def regressor(in_features: int, features: int, views: int, outputs: int) -> nn.Sequential:
+    """The MVTN MLP ``[B, in_features] -> [B, outputs]``: ``-> b -> b -> 5M -> outputs``."""
+    widths = (in_features, features, features, 5 * views)
+    layers: list[nn.Module] = []
+    for cin, cout in zip(widths[:-1], widths[1:]):
+        layers += [nn.Linear(cin, cout), nn.BatchNorm1d(cout), nn.ReLU(inplace=True)]
+    last = nn.Linear(widths[-1], outputs)
+    nn.init.zeros_(last.weight)
+    nn.init.zeros_(last.bias)
+    return nn.Sequential(*layers, last)
+
+
+class MVTNSelector(ViewSelector):
+    """Learned per-shape views: ``forward(points [B, N, 3]) -> (azim, elev, dist)``, each ``[B, M]``.
+
+    views: M. variant: "direct" | "circular" | "spherical" (see the module docstring).
+    point_encoder: a registered name (``mvtn_exp.models.point_encoders``) or an ``nn.Module``
+    mapping ``[B, N, 3] -> [B, features]``. features: b (40 in the paper).
+    distance: camera distance (the centre of the learned range when ``learn_distance``).
+    elevation: elevation of the circular u0 (circular variant only).
+    BatchNorm in the encoder and the regressor: training mode needs B >= 2; in eval mode the
+    views of a shape do not depend on the other shapes in the batch.
+    """
+
+    learned = True
+
+    def __init__(self, views: int, variant: str, point_encoder: Union[str, nn.Module] = "pointnet",
+                 features: int = 40, distance: float = 2.2, learn_distance: bool = False,
+                 distance_bound: float = 1.0, elevation: float = 30.0,
+                 point_encoder_kwargs: Optional[dict] = None) -> None:
+        super().__init__(views)
+        if variant not in VARIANTS:
+            raise ValueError(f"MVTNSelector: unknown variant {variant!r}; allowed: {', '.join(VARIANTS)}")
+        if isinstance(features, bool) or int(features) != features or features < 1:
+            raise ValueError(f"MVTNSelector: features must be an integer >= 1, got {features!r}")
+        if learn_distance and not distance_bound > 0:
+            raise ValueError(f"MVTNSelector: distance_bound must be > 0, got {distance_bound!r}")
+        M, b = self.views, int(features)
+        self.variant, self.features = variant, b
+        self.distance, self.learn_distance = float(distance), bool(learn_distance)
+
+        if variant == "circular":
+            azim0, elev0, _ = layouts.circular(M, 1, elevation=elevation, distance=distance)
+        else:  # "spherical" and "direct" both start from the spherical layout
+            azim0, elev0, _ = layouts.spherical(M, 1, distance=distance)
+        self.register_buffer("azim0", azim0[0], persistent=False)  # [M] degrees
+        self.register_buffer("elev0", elev0[0], persistent=False)  # [M] degrees
+        azim_bound = 180.0 if variant == "direct" else 180.0 / M
+        dist_bound = float(distance_bound) if self.learn_distance else 0.0
+        self.register_buffer("u_bound", torch.tensor([azim_bound, 90.0, dist_bound]), persistent=False)
+
+        if isinstance(point_encoder, nn.Module):
+            self.encoder = point_encoder
+        else:
+            self.encoder = build_point_encoder(point_encoder, out_features=b, **(point_encoder_kwargs or {}))
+        self.regressor = regressor(b + 2 * M, b, M, (3 if self.learn_distance else 2) * M)
+
+    def initial_views(self, batch: int = 1) -> Views:
+        """u0: ``(azim, elev, dist)``, each ``[batch, M]``."""
+        azim = self.azim0.expand(batch, -1).clone()
+        return azim, self.elev0.expand(batch, -1).clone(), torch.full_like(azim, self.distance)
+
+    def forward(self, points: Tensor) -> Views:
+        """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]`` (degrees, degrees, world units)."""
+        self._check_points(points)
+        B, M = points.shape[0], self.views
+        dtype = self.azim0.dtype
+        feats = self.encoder(points.to(dtype))  # [B, b]
+        u0 = torch.cat([self.azim0 / 180.0, self.elev0 / 90.0]).expand(B, -1)  # [B, 2M]
+        t = torch.tanh(self.regressor(torch.cat([feats, u0], dim=1)))  # [B, 2M or 3M]
+        azim = self.azim0 + self.u_bound[0] * t[:, :M]
+        elev = self.elev0 + self.u_bound[1] * t[:, M:2 * M]
+        if self.learn_distance:
+            dist = self.distance + self.u_bound[2] * t[:, 2 * M:]
+        else:
+            dist = torch.full_like(azim, self.distance)
+        return azim, elev, dist
+
+    def extra_repr(self) -> str:
+        return (f"views={self.views}, variant={self.variant!r}, features={self.features}, "
+                f"distance={self.distance}, learn_distance={self.learn_distance}")

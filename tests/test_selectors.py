@@ -1,0 +1,247 @@
+import pytest
+import torch
+
+from mvtn_exp.render import layouts
+from mvtn_exp.selectors import (SELECTORS, VARIANTS, MVTNSelector, RandomSelector, build_selector)
+
+FIXED = ["circular", "spherical", "random"]
+LEARNED = ["mvtn_direct", "mvtn_circular", "mvtn_spherical"]
+
+
+def clouds(B=3, N=32, seed=0, dtype=torch.float32):
+    return torch.randn(B, N, 3, generator=torch.Generator().manual_seed(seed), dtype=dtype)
+
+
+def test_registry_names():
+    assert set(SELECTORS) == set(FIXED + LEARNED)
+    allowed = "allowed: circular, mvtn_circular, mvtn_direct, mvtn_spherical, random, spherical"
+    with pytest.raises(ValueError, match=allowed):
+        build_selector("mvtn_free", 4)
+
+
+@pytest.mark.parametrize("name", sorted(SELECTORS))
+@pytest.mark.parametrize("M", [1, 4, 12])
+@pytest.mark.parametrize("training", [True, False])
+def test_every_selector_shapes_dtypes(name, M, training):
+    torch.manual_seed(0)
+    sel = build_selector(name, M)
+    sel.train(training)
+    assert sel.views == M and sel.learned == (name in LEARNED)
+    out = sel(clouds())
+    assert len(out) == 3
+    for t in out:
+        assert t.shape == (3, M) and t.dtype == torch.float32 and torch.isfinite(t).all()
+    assert (out[2] > 0).all()
+    if name in LEARNED:
+        sum(t.sum() for t in out).backward()
+        assert all(p.grad is None or torch.isfinite(p.grad).all() for p in sel.parameters())
+
+
+@pytest.mark.parametrize("name", FIXED)
+def test_fixed_selectors_follow_input_dtype_and_are_the_same_for_all_shapes(name):
+    sel = build_selector(name, 6).eval()
+    azim, elev, dist = sel(clouds(B=5, dtype=torch.float64))
+    for t in (azim, elev, dist):
+        assert t.dtype == torch.float64
+        assert (t == t[:1]).all()
+
+
+@pytest.mark.parametrize("name", sorted(SELECTORS))
+@pytest.mark.parametrize("bad", [0, -2, 2.5, 4.0, "4", True, None])
+def test_bad_views_rejected(name, bad):
+    with pytest.raises(ValueError, match="views"):
+        build_selector(name, bad)
+
+
+def test_bad_points_rejected():
+    for name in SELECTORS:
+        with pytest.raises(ValueError, match=r"\[B, N, 3\]"):
+            build_selector(name, 4)(torch.zeros(3, 10))
+
+
+@pytest.mark.parametrize("M", [1, 3, 4, 12])
+def test_circular_selector(M):
+    azim, elev, dist = build_selector("circular", M)(clouds())
+    assert (elev == 30.0).all() and (dist == 2.2).all()
+    expected = torch.tensor([360.0 * k / M for k in range(M)])
+    assert torch.allclose(azim, expected.expand(3, -1), atol=1e-5)
+    azim, elev, dist = build_selector("circular", M, elevation=-10.0, distance=3.0)(clouds())
+    assert (elev == -10.0).all() and (dist == 3.0).all()
+
+
+@pytest.mark.parametrize("M", range(1, 21))
+def test_spherical_selector_gives_m_distinct_views(M):
+    azim, elev, dist = build_selector("spherical", M)(clouds(B=2))
+    a, e = torch.deg2rad(azim[0].double()), torch.deg2rad(elev[0].double())
+    dirs = torch.stack([e.cos() * a.sin(), e.sin(), e.cos() * a.cos()], -1)
+    assert len(dirs) == M
+    d = torch.cdist(dirs, dirs) + torch.eye(M, dtype=dirs.dtype) * 10
+    assert d.min() > 0.1  # exactly M distinct directions
+    assert torch.equal(azim[0], azim[1])
+
+
+# --------------------------------------------------------------------------- random
+
+
+def test_random_selector_training_redraws_and_is_globally_seeded():
+    sel = RandomSelector(5).train()
+    x = clouds()
+    torch.manual_seed(123)
+    a1 = sel(x)
+    a2 = sel(x)
+    assert not torch.equal(a1[0], a2[0]) and not torch.equal(a1[1], a2[1])
+    assert not torch.equal(a1[0][0], a1[0][1])  # per shape
+    torch.manual_seed(123)
+    b1 = sel(x)
+    assert torch.equal(a1[0], b1[0]) and torch.equal(a1[1], b1[1])
+    assert (a1[2] == 2.2).all()
+
+
+def test_random_selector_eval_is_fixed():
+    sel = RandomSelector(7, seed=3).eval()
+    a, b = sel(clouds(B=4)), sel(clouds(B=4, seed=9))
+    for s, t in zip(a, b):
+        assert torch.equal(s, t) and (s == s[:1]).all()
+    assert torch.equal(RandomSelector(7, seed=3).eval()(clouds())[0][0], a[0][0])
+    assert not torch.equal(RandomSelector(7, seed=4).eval()(clouds())[0][0], a[0][0])
+    torch.manual_seed(0)  # the global generator does not matter in eval mode
+    assert torch.equal(sel(clouds(B=4))[1], a[1])
+
+
+def test_random_selector_uniform_on_sphere():
+    torch.manual_seed(0)
+    azim, elev, _ = RandomSelector(200).train()(clouds(B=100, N=1))
+    assert azim.numel() == 20000
+    assert (azim >= 0).all() and (azim < 360).all() and (elev.abs() <= 90).all()
+    s = torch.sin(torch.deg2rad(elev.double()))
+    assert abs(float(s.mean())) < 0.02
+    assert abs(float((elev > 30).double().mean()) - 0.25) < 0.02
+    assert abs(float(azim.double().mean()) - 180.0) < 5.0
+
+
+# --------------------------------------------------------------------------- MVTN
+
+
+def u0_of(variant, M, B):
+    if variant == "circular":
+        a, e, d = layouts.circular(M, B)
+    else:
+        a, e, d = layouts.spherical(M, B)
+    return a, e, d
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("M", [1, 4, 12])
+def test_mvtn_bounds_defined_once(variant, M):
+    sel = MVTNSelector(M, variant, learn_distance=True, distance_bound=0.5)
+    expected = [180.0 if variant == "direct" else 180.0 / M, 90.0, 0.5]
+    assert torch.allclose(sel.u_bound, torch.tensor(expected))
+    assert MVTNSelector(M, variant).u_bound[2] == 0
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("training", [True, False])
+def test_mvtn_starts_at_u0_exactly(variant, training):
+    torch.manual_seed(0)
+    sel = MVTNSelector(4, variant, learn_distance=True).train(training)
+    azim, elev, dist = sel(clouds())
+    a0, e0, d0 = u0_of(variant, 4, 3)
+    assert torch.equal(azim, a0) and torch.equal(elev, e0) and torch.equal(dist, d0)
+    ia, ie, idist = sel.initial_views(3)
+    assert torch.equal(ia, a0) and torch.equal(ie, e0) and torch.equal(idist, d0)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_mvtn_learns_and_gradients_reach_the_encoder(variant):
+    torch.manual_seed(0)
+    sel = MVTNSelector(4, variant, learn_distance=True).train()
+    opt = torch.optim.SGD(sel.parameters(), lr=0.1)
+    x = clouds()
+
+    def step():
+        opt.zero_grad()
+        azim, elev, dist = sel(x)
+        loss = azim.mean() + elev.mean() + dist.mean()
+        loss.backward()
+        return azim.detach(), elev.detach(), dist.detach()
+
+    a0, e0, d0 = step()
+    last = sel.regressor[-1]
+    assert last.weight.grad.abs().sum() > 0 and last.bias.grad.abs().sum() > 0
+    opt.step()
+    a1, e1, d1 = step()
+    assert (a1 < a0).all() and (e1 < e0).all() and (d1 < d0).all()  # moved down the loss
+    enc = [p.grad for p in sel.encoder.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in enc)
+    assert sum(float(g.abs().sum()) for g in enc) > 0
+    assert sel.encoder.mlp[0].weight.grad.abs().sum() > 0  # the very first conv
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("M", [1, 5])
+def test_mvtn_offsets_never_exceed_the_bounds(variant, M):
+    torch.manual_seed(0)
+    sel = MVTNSelector(M, variant, learn_distance=True, distance_bound=0.7, distance=2.0).train()
+    opt = torch.optim.SGD(sel.parameters(), lr=1e3)
+    x = clouds(B=4)
+    g = torch.Generator().manual_seed(1)
+    sign = torch.randint(0, 2, (3, 1, M), generator=g).float() * 2 - 1  # push both ways
+    a0, e0, d0 = sel.initial_views(4)
+    seen = torch.zeros(3)
+    for _ in range(5):
+        opt.zero_grad()
+        azim, elev, dist = sel(x)
+        off = torch.stack([azim - a0, elev - e0, dist - d0]).abs().amax(dim=(1, 2))
+        assert (off <= sel.u_bound + 1e-4).all(), (off, sel.u_bound)
+        seen = torch.maximum(seen, off.detach())
+        loss = 1e4 * (sign * torch.stack([azim, elev, dist])).sum()
+        loss.backward()
+        opt.step()
+    sel.eval()
+    azim, elev, dist = sel(x)
+    off = torch.stack([azim - a0, elev - e0, dist - d0]).abs().amax(dim=(1, 2))
+    assert (off <= sel.u_bound + 1e-4).all()
+    assert (seen >= 0.9 * sel.u_bound).all()  # the push did reach the bounds
+    assert (dist >= 2.0 - 0.7 - 1e-5).all() and (dist <= 2.0 + 0.7 + 1e-5).all()
+
+
+def test_mvtn_constant_distance_when_not_learned():
+    sel = MVTNSelector(3, "spherical", distance=1.7)
+    assert (sel(clouds())[2] == 1.7).all()
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_mvtn_eval_output_independent_of_batch(variant):
+    torch.manual_seed(0)
+    sel = MVTNSelector(4, variant, learn_distance=True).train()
+    opt = torch.optim.SGD(sel.parameters(), lr=0.01)
+    for i in range(3):  # non-zero last layer and non-default BN statistics
+        opt.zero_grad()
+        a, e, d = sel(clouds(B=4, seed=i))
+        (a.mean() + e.mean() + d.mean()).backward()
+        opt.step()
+    sel.eval()
+    x = clouds(B=5, seed=10)
+    with torch.no_grad():
+        batched = sel(x)
+        alone = sel(x[2:3])
+        others = sel(torch.cat([x[2:3], clouds(B=3, seed=11)]))
+    assert not torch.allclose(batched[0][0], batched[0][1])  # views are per shape
+    for full, one, mixed in zip(batched, alone, others):
+        assert torch.allclose(full[2:3], one, atol=1e-5)
+        assert torch.allclose(mixed[:1], one, atol=1e-5)
+
+
+def test_mvtn_bad_arguments_and_custom_encoder():
+    with pytest.raises(ValueError, match="variant"):
+        MVTNSelector(4, "free")
+    with pytest.raises(ValueError, match="allowed: pointnet"):
+        MVTNSelector(4, "direct", point_encoder="dgcnn")
+    sel = MVTNSelector(4, "circular", point_encoder="pointnet", features=8, point_encoder_kwargs={"use_tnet": True})
+    assert sel.encoder.out_features == 8 and sel.encoder.tnet is not None
+    assert sel.regressor[0].in_features == 8 + 2 * 4 and sel.regressor[-1].out_features == 2 * 4
+    widths = [m.out_features for m in sel.regressor if isinstance(m, torch.nn.Linear)]
+    assert widths == [8, 8, 20, 8]
+    enc = torch.nn.Sequential(torch.nn.Flatten(), torch.nn.LazyLinear(40))
+    out = MVTNSelector(2, "direct", point_encoder=enc)(clouds(N=16))
+    assert out[0].shape == (3, 2)
