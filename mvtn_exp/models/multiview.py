@@ -1,0 +1,111 @@
+"""Multi-view network C of MVTN: one shared 2D backbone per view, then view aggregation.
+
+``images [B, M, 3, H, W] -> (logits [B, num_classes], features [B, feature_dim])``.
+The M views are folded into the batch (one backbone call on ``[B*M, 3, H, W]``) and nothing
+is detached, so gradients reach the images and, through the renderer, the cameras.
+
+The backbone's own ``fc`` is never called (only ``backbone.features``); the classifier is
+``self.head``. Its ``fc`` parameters therefore get no gradient (DDP: ``find_unused_parameters``).
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional, Union
+
+from torch import Tensor, nn
+
+from .backbones import PathLike, build_backbone, load_weights
+
+POOLS = ("max", "mean")
+
+
+class MVCNN(nn.Module):
+    """MVCNN: shared backbone, view pooling over M, then ``Linear(feature_dim, num_classes)``.
+
+    Args:
+        backbone: a registered backbone name (``"resnet18"``, ``"small_cnn"``, ...) or a module
+            with ``feature_dim`` and ``features(x [N, 3, H, W]) -> [N, feature_dim]``.
+        num_classes: K, the number of logits.
+        weights: optional local state_dict file loaded into the backbone (a classifier of another
+            size in the file is ignored, see ``backbones.load_weights``).
+        pool: ``"max"`` (MVCNN) or ``"mean"`` over views. With max pooling each feature channel
+            takes its gradient from the single view that wins it, so a view that wins no channel
+            gets exactly zero gradient (neither it nor its camera learns from that sample); with
+            mean pooling every view gets ``1/M`` of the gradient.
+        dropout: dropout probability on the pooled descriptor before the head.
+
+    Pooling is symmetric in the views, so the output is invariant to their order.
+    """
+
+    def __init__(self, backbone: Union[nn.Module, str], num_classes: int,
+                 weights: Optional[PathLike] = None, pool: str = "max", dropout: float = 0.0) -> None:
+        super().__init__()
+        if pool not in POOLS:
+            raise ValueError(f"unknown view pooling {pool!r}; allowed: {', '.join(POOLS)}")
+        if isinstance(backbone, str):
+            backbone = build_backbone(backbone, num_classes=num_classes, weights=weights)
+        elif weights is not None:
+            load_weights(backbone, weights)
+        if not hasattr(backbone, "features") or not hasattr(backbone, "feature_dim"):
+            raise TypeError(f"backbone {type(backbone).__name__} needs `features(x)` and `feature_dim`")
+        self.backbone = backbone
+        self.feature_dim = int(backbone.feature_dim)
+        self.num_classes = num_classes
+        self.pool = pool
+        self.dropout = nn.Dropout(dropout)
+        self.head = nn.Linear(self.feature_dim, num_classes)
+
+    def view_features(self, images: Tensor) -> Tensor:
+        """``[B, M, C, H, W] -> [B, M, feature_dim]``: the backbone on every view, one call."""
+        if images.dim() != 5 or images.shape[1] < 1:
+            raise ValueError(f"{type(self).__name__} expects images [B, M, C, H, W] with M >= 1, "
+                             f"got {list(images.shape)}")
+        b, m = images.shape[:2]
+        feats = self.backbone.features(images.reshape(b * m, *images.shape[2:]))  # [B*M, D]
+        return feats.reshape(b, m, -1)
+
+    def aggregate(self, feats: Tensor) -> Tensor:
+        """``[B, M, D] -> [B, D]`` view pooling (max or mean over M)."""
+        return feats.amax(dim=1) if self.pool == "max" else feats.mean(dim=1)
+
+    def forward(self, images: Tensor) -> tuple[Tensor, Tensor]:
+        """``[B, M, 3, H, W] -> (logits [B, num_classes], features [B, feature_dim])``.
+
+        ``features`` is the pooled shape descriptor before dropout and the head (for retrieval).
+        """
+        features = self.aggregate(self.view_features(images))
+        return self.head(self.dropout(features)), features
+
+
+class LateFusion(MVCNN):
+    """Late fusion: classify every view with the shared head, then average the M logits.
+
+    Same interface as MVCNN; ``features [B, feature_dim]`` is the mean of the view features.
+    Note: the head is linear, so without dropout (or in eval mode) the logits equal
+    ``head(mean_m f_m)``, i.e. MVCNN with ``pool="mean"``; the variants differ only in where
+    dropout acts (per view here, on the pooled vector there). ``pool`` is fixed to ``"mean"``.
+    """
+
+    def __init__(self, backbone: Union[nn.Module, str], num_classes: int,
+                 weights: Optional[PathLike] = None, pool: str = "mean", dropout: float = 0.0) -> None:
+        if pool != "mean":
+            raise ValueError(f"LateFusion averages views; pool must be 'mean', got {pool!r}")
+        super().__init__(backbone, num_classes, weights=weights, pool="mean", dropout=dropout)
+
+    def forward(self, images: Tensor) -> tuple[Tensor, Tensor]:
+        """``[B, M, 3, H, W] -> (logits [B, num_classes], features [B, feature_dim])``."""
+        feats = self.view_features(images)                          # [B, M, D]
+        logits = self.head(self.dropout(feats)).mean(dim=1)         # [B, M, K] -> [B, K]
+        return logits, feats.mean(dim=1)
+
+
+MULTIVIEW: dict[str, Callable[..., MVCNN]] = {"mvcnn": MVCNN, "late_fusion": LateFusion}
+
+
+def build_multiview(name: str, backbone: Union[nn.Module, str], num_classes: int, **kw) -> MVCNN:
+    """Build a registered multi-view network: ``[B, M, 3, H, W] -> (logits [B, K], features [B, D])``.
+
+    ``kw`` goes to the constructor (``weights``, ``pool``, ``dropout``).
+    """
+    if name not in MULTIVIEW:
+        raise ValueError(f"unknown multi-view network {name!r}; allowed: {', '.join(sorted(MULTIVIEW))}")
+    return MULTIVIEW[name](backbone, num_classes, **kw)

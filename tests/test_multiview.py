@@ -1,0 +1,175 @@
+import pytest
+import torch
+
+from mvtn_exp.models.backbones import resnet18, small_cnn
+from mvtn_exp.models.multiview import MULTIVIEW, LateFusion, MVCNN, build_multiview
+
+K, W = 5, 8  # classes, small_cnn width (feature_dim 64)
+
+
+def _images(b, m, size=32, seed=0, requires_grad=False):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(b, m, 3, size, size, generator=g).requires_grad_(requires_grad)
+
+
+def _net(pool="max", cls=MVCNN, **kw):
+    torch.manual_seed(0)
+    return cls(small_cnn(num_classes=K, width=W), K, pool=pool, **kw)
+
+
+def _manual_views(net, images):
+    """Per-view backbone features by an explicit loop over views: [B, M, D]."""
+    return torch.stack([net.backbone.features(images[:, m]) for m in range(images.shape[1])], 1)
+
+
+@pytest.mark.parametrize("b", [1, 2])
+@pytest.mark.parametrize("m", [1, 3, 12])
+@pytest.mark.parametrize("pool", ["max", "mean"])
+def test_shapes_and_pooled_features_match_manual_loop(b, m, pool):
+    net = _net(pool).eval()
+    x = _images(b, m)
+    with torch.no_grad():
+        logits, feats = net(x)
+        per_view = _manual_views(net, x)
+    assert net.feature_dim == 8 * W
+    assert logits.shape == (b, K) and feats.shape == (b, 8 * W)
+    ref = per_view.amax(1) if pool == "max" else per_view.mean(1)
+    torch.testing.assert_close(feats, ref, atol=1e-5, rtol=0)
+    torch.testing.assert_close(logits, net.head(ref), atol=1e-5, rtol=0)
+
+
+def test_non_contiguous_input_and_non_square_images():
+    net = _net().eval()
+    x = _images(2, 4, size=40)[..., :24, :].transpose(1, 0).contiguous().transpose(1, 0)  # [2,4,3,24,40]
+    assert not x.is_contiguous()
+    with torch.no_grad():
+        logits, feats = net(x)
+        ref = _manual_views(net, x).amax(1)
+    assert logits.shape == (2, K)
+    torch.testing.assert_close(feats, ref, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("name", sorted(MULTIVIEW))
+def test_view_permutation_invariance(name):
+    net = build_multiview(name, small_cnn(num_classes=K, width=W), K).eval()
+    x = _images(2, 6)
+    perm = torch.tensor([3, 0, 5, 1, 4, 2])
+    with torch.no_grad():
+        l1, f1 = net(x)
+        l2, f2 = net(x[:, perm])
+    torch.testing.assert_close(l1, l2, atol=1e-5, rtol=0)
+    torch.testing.assert_close(f1, f2, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("name", sorted(MULTIVIEW))
+def test_batch_equals_single_shape_calls(name):
+    net = build_multiview(name, "small_cnn", K).eval()
+    x = _images(3, 4, seed=1)
+    with torch.no_grad():
+        logits, feats = net(x)
+        singles = [net(x[i:i + 1]) for i in range(3)]
+    torch.testing.assert_close(logits, torch.cat([s[0] for s in singles]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(feats, torch.cat([s[1] for s in singles]), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("name", sorted(MULTIVIEW))
+def test_gradients_reach_backbone_and_input_images(name):
+    net = build_multiview(name, small_cnn(num_classes=K, width=W), K, dropout=0.2).train()
+    x = _images(2, 3, requires_grad=True)
+    logits, _ = net(x)
+    logits.square().sum().backward()
+    assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    for pname, p in net.named_parameters():
+        if pname.startswith("backbone.fc."):  # the backbone's own classifier is unused by design
+            assert p.grad is None
+            continue
+        assert p.grad is not None and torch.isfinite(p.grad).all(), pname
+    assert net.backbone.body[0].weight.grad.abs().sum() > 0  # first conv: the whole path is live
+
+
+def test_max_pool_losing_view_gets_zero_grad_mean_pool_all_views():
+    """Max pooling: a view that wins no feature channel gets exactly zero gradient.
+
+    small_cnn at init in eval mode is positively homogeneous (bias-free convs, identity BN,
+    ReLU, max/avg pools), so features(0.5 x) = 0.5 features(x) <= features(x): view 1 (= 0.5 *
+    view 0) never wins the max. With mean pooling every view gets gradient.
+    """
+    base = _images(2, 1)
+    views = torch.cat([base, 0.5 * base, _images(2, 1, seed=3)], 1)  # [2, 3, 3, 32, 32]
+    grads = {}
+    for pool in ("max", "mean"):
+        net = _net(pool).eval()
+        x = views.clone().requires_grad_(True)
+        net(x)[0].sum().backward()
+        grads[pool] = x.grad.abs().flatten(2).sum(-1)  # [B, M]
+    assert (grads["max"][:, 1] == 0).all()
+    assert (grads["max"].sum(1) > 0).all() and (grads["max"][:, 0] > 0).all()
+    assert (grads["mean"] > 0).all()
+
+
+def test_late_fusion_equals_mean_pool_mvcnn_in_eval():
+    mv, lf = _net("mean").eval(), _net("mean", cls=LateFusion, dropout=0.5).eval()
+    lf.load_state_dict(mv.state_dict())
+    x = _images(2, 5)
+    with torch.no_grad():
+        for a, b in zip(mv(x), lf(x)):
+            torch.testing.assert_close(a, b, atol=1e-5, rtol=0)
+
+
+def test_dropout_only_in_train_mode():
+    net = _net(dropout=0.5)
+    x = _images(2, 3)
+    net.eval()
+    with torch.no_grad():
+        assert torch.equal(net(x)[0], net(x)[0])
+        net.train()
+        torch.manual_seed(1)
+        a, fa = net(x)
+        torch.manual_seed(2)
+        b, fb = net(x)
+    assert not torch.allclose(a, b)
+    torch.testing.assert_close(fa, fb, atol=1e-6, rtol=0)  # descriptor is taken before dropout
+
+
+def test_unknown_names_and_bad_input_raise_clear_errors():
+    with pytest.raises(ValueError, match=r"unknown multi-view network 'viewgcn'.*late_fusion, mvcnn"):
+        build_multiview("viewgcn", "small_cnn", K)
+    with pytest.raises(ValueError, match=r"unknown backbone 'resnet7'.*allowed"):
+        build_multiview("mvcnn", "resnet7", K)
+    with pytest.raises(ValueError, match=r"view pooling 'sum'.*max, mean"):
+        MVCNN("small_cnn", K, pool="sum")
+    with pytest.raises(ValueError, match=r"\[B, M, C, H, W\]"):
+        _net()(torch.rand(2, 3, 32, 32))
+    with pytest.raises(ValueError, match=r"M >= 1"):
+        _net()(torch.rand(2, 0, 3, 32, 32))
+
+
+def test_weights_path_loaded_into_named_and_given_backbones(tmp_path):
+    torch.manual_seed(7)
+    src = small_cnn(num_classes=K)
+    path = tmp_path / "small.pth"
+    torch.save(src.state_dict(), path)
+    for backbone in ("small_cnn", small_cnn(num_classes=K)):
+        net = build_multiview("mvcnn", backbone, K, weights=str(path))
+        for k, v in src.state_dict().items():
+            assert torch.equal(net.backbone.state_dict()[k], v), k
+    with pytest.raises(FileNotFoundError, match="missing.pth"):
+        MVCNN("small_cnn", K, weights=tmp_path / "missing.pth")
+
+
+def test_resnet18_weights_and_forward_64px(tmp_path):
+    torch.manual_seed(0)
+    src = resnet18(num_classes=1000)  # ImageNet-sized head: skipped, the rest must load
+    path = tmp_path / "r18.pth"
+    torch.save(src.state_dict(), path)
+    net = MVCNN("resnet18", K, weights=path).eval()
+    sd = net.backbone.state_dict()
+    for k, v in src.state_dict().items():
+        if not k.startswith("fc."):
+            assert torch.equal(sd[k], v), k
+    x = _images(2, 3, size=64)
+    with torch.no_grad():
+        logits, feats = net(x)
+        ref = _manual_views(net, x).amax(1)
+    assert logits.shape == (2, K) and feats.shape == (2, 512)
+    torch.testing.assert_close(feats, ref, atol=1e-5, rtol=0)
