@@ -18,8 +18,8 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)  ## create .venv: torch==2.13.0 first (CPU build), then the package with test extras, editable
 
-run: install  ## render the embedded demo shape from 12 spherical views (outputs/render/...)
-	$(BIN)/mvtn-render input=builtin:torus views=12 layout=spherical image_size=128
+run: install  ## train the default MVTN on the embedded synthetic dataset (about 2 minutes; outputs/train/...)
+	$(BIN)/mvtn-train
 
 test: install  ## run the fast test suite (slow tests: make test-all)
 	$(BIN)/python -m pytest -q
