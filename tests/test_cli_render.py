@@ -46,3 +46,18 @@ def test_bad_input_is_one_clear_line(tmp_path, args, match):
     out = _run(tmp_path, *args)
     assert out.returncode == 2
     assert match in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("arg,match", [
+    ("renderer.mdoe=soft", "allowed keys here: "),
+    ("viewz=3", "allowed keys here: "),
+    ("image_size=big", "key 'image_size'"),
+])
+def test_config_errors_are_one_line_with_exit_code_2(tmp_path, arg, match):
+    out = _run(tmp_path, "input=builtin:box", arg)
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in out.stderr
+    assert "mvtn_exp/conf/render.yaml" in lines[0] and match in lines[0]
+    if "allowed" in match:
+        assert " mode," in lines[0] or "views" in lines[0]

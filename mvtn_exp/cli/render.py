@@ -23,6 +23,7 @@ from ..render import layouts
 from ..render.config import RendererConfig
 from ..render.renderer import MultiViewRenderer
 from ..viz.images import view_grid, write_png
+from .common import check_overrides
 
 log = logging.getLogger("mvtn-render")
 LAYOUTS = ("circular", "spherical", "explicit")
@@ -139,6 +140,7 @@ def _app(cfg) -> None:
 
 
 def main() -> None:
+    check_overrides("mvtn-render", "render", RenderAppConfig, sys.argv[1:])
     _app()
 
 

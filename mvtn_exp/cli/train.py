@@ -14,6 +14,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
 from ..data.shapes import ShapeError
+from .common import check_overrides
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainConfig, TrainingDiverged, train
 
@@ -36,6 +37,7 @@ def _app(cfg) -> None:
 
 
 def main() -> None:
+    check_overrides("mvtn-train", "train", TrainConfig, sys.argv[1:])
     _app()
 
 
