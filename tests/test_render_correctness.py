@@ -184,3 +184,16 @@ def test_flat_shading_per_face_view_equals_per_pixel(monkeypatch, specular):
     per_pixel = r(mesh, a, e).images
     assert per_face.max() > 0.3
     assert torch.equal(per_face, per_pixel)
+
+
+@pytest.mark.parametrize("comp", ["alpha", "norm"])
+def test_coloured_points_keep_their_colour(comp):
+    g = torch.Generator().manual_seed(5)
+    pts = (torch.rand(800, 3, generator=g) * 2 - 1) * 0.5
+    colors = torch.zeros(800, 3)
+    colors[:400, 0] = 1.0  # red half, green half
+    colors[400:, 1] = 1.0
+    clouds = PointClouds(pts, torch.tensor([800]), colors)
+    img = MultiViewRenderer(image_size=48, compositor=comp)(clouds, torch.tensor([[30.0]]), torch.tensor([[10.0]])).images[0, 0]
+    assert img[0].max() > 0.5 and img[1].max() > 0.5
+    assert img[2].abs().max() < 1e-6  # no blue anywhere: colours never leak from elsewhere

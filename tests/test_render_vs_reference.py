@@ -43,10 +43,11 @@ def test_hard_ids_match_dense(tile_size, max_candidates, cull_backfaces):
     _assert_same(sel, ref)
 
 
+@pytest.mark.parametrize("K", [1, 5])
 @pytest.mark.parametrize("tile_size,max_candidates", [(8, 1 << 24), (4, 300)])
-def test_soft_k_nearest_ids_match_dense(tile_size, max_candidates):
+def test_soft_k_nearest_ids_match_dense(tile_size, max_candidates, K):
     meshes = random_triangles(30, seed=2, scale=1.0, size=0.5)
-    r = MultiViewRenderer(image_size=20, mode="soft", faces_per_pixel=5, sigma=2e-3, tile_size=tile_size, max_candidates=max_candidates)
+    r = MultiViewRenderer(image_size=20, mode="soft", faces_per_pixel=K, sigma=2e-3, tile_size=tile_size, max_candidates=max_candidates)
     sel, ref = _search_both(r, meshes, 2.5)
     _assert_same(sel, ref)
 
