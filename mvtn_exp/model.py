@@ -5,11 +5,9 @@ from torch import nn
 
 from .data.shapes import PointClouds
 from .models.multiview import build_multiview
-from .render.config import RendererConfig
 from .render.renderer import MultiViewRenderer
+from .schema import SHAPES, TrainConfig
 from .selectors import build_selector
-
-SHAPES = ("mesh", "points")
 
 
 class MVTN(nn.Module):
@@ -26,18 +24,29 @@ class MVTN(nn.Module):
         self.selector, self.renderer, self.mvnet, self.shape = selector, renderer, mvnet, shape
 
     def forward(self, batch: dict) -> dict:
-        device = next(self.mvnet.parameters()).device
-        points = batch["points"].to(device)
-        azim, elev, dist = self.selector(points)
+        views = self.select(batch)
+        images = self.render(batch, *views)
+        logits, features = self.mvnet(images)
+        return {"logits": logits, "features": features, "azim": views[0], "elev": views[1], "dist": views[2],
+                "images": images}
+
+    @property
+    def device(self):
+        return next(self.mvnet.parameters()).device
+
+    def select(self, batch: dict):
+        """G: ``batch["points"] [B, N, 3]`` -> ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world units)."""
+        return self.selector(batch["points"].to(self.device))
+
+    def render(self, batch: dict, azim, elev, dist):
+        """R: the batch's shapes seen from ``[B, M]`` views -> images ``[B, M, 3, H, W]``."""
         if self.shape == "points":
-            shapes = PointClouds.from_padded(points)
+            shapes = PointClouds.from_padded(batch["points"].to(self.device))
         else:
             if batch.get("meshes") is None:
                 raise ValueError("MVTN(shape='mesh'): the batch carries no meshes")
-            shapes = batch["meshes"].to(device)
-        images = self.renderer(shapes, azim, elev, dist).images
-        logits, features = self.mvnet(images)
-        return {"logits": logits, "features": features, "azim": azim, "elev": elev, "dist": dist, "images": images}
+            shapes = batch["meshes"].to(self.device)
+        return self.renderer(shapes, azim, elev, dist).images
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """``{"mvnet": C's parameters, "selector": G's parameters}`` (G's list is empty for fixed layouts)."""
@@ -45,8 +54,26 @@ class MVTN(nn.Module):
                 "selector": [p for p in self.selector.parameters() if p.requires_grad]}
 
 
-def build_mvtn(*, views: int, selector: str, backbone: str, num_classes: int, renderer: RendererConfig,
-               shape: str = "mesh", mvnet: str = "mvcnn") -> MVTN:
-    """Build G, R and C from names (see ``selectors.SELECTORS``, ``models.backbones``)."""
-    return MVTN(build_selector(selector, views), MultiViewRenderer(renderer),
-                build_multiview(mvnet, backbone, num_classes), shape=shape)
+def build_selector_from(cfg: TrainConfig) -> nn.Module:
+    """G from ``cfg.selector`` / ``cfg.point_encoder`` with M = ``cfg.views``."""
+    s = cfg.selector
+    if s.name == "random":
+        return build_selector("random", cfg.views, distance=s.distance, seed=cfg.seed)
+    if s.name == "circular":
+        return build_selector("circular", cfg.views, elevation=s.elevation, distance=s.distance)
+    if s.name == "spherical":
+        return build_selector("spherical", cfg.views, distance=s.distance)
+    pe = cfg.point_encoder
+    kw = dict(point_encoder=pe.name, features=pe.features, distance=s.distance, learn_distance=s.learn_distance,
+              distance_bound=s.distance_bound, azim_bound=s.azim_bound, elev_bound=s.elev_bound,
+              init_std=s.init_std, point_encoder_kwargs={"use_tnet": pe.use_tnet})
+    if s.name == "mvtn_circular":
+        kw["elevation"] = s.elevation
+    return build_selector(s.name, cfg.views, **kw)
+
+
+def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
+    """G, R and C as ``cfg`` (a validated ``TrainConfig``) describes them, for ``num_classes`` classes."""
+    mvnet = build_multiview(cfg.mvnet.name, cfg.backbone.name, num_classes, weights=cfg.backbone.weights,
+                            pool=cfg.mvnet.pool, dropout=cfg.mvnet.dropout)
+    return MVTN(build_selector_from(cfg), MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape)

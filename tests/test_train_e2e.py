@@ -1,6 +1,7 @@
 """End-to-end training: artefacts, learning of the selector G, exact resume, config checks, the CLI."""
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
@@ -23,10 +24,23 @@ def cache(tmp_path_factory) -> str:
 
 
 def tiny(cache, **kw) -> dict:
-    cfg = dict(views=2, image_size=32, epochs=2, num_per_class=[4, 2, 2], backbone="small_cnn", batch_size=8,
-               data_dir=cache, progress=False, seed=0)
-    cfg.update(kw)
+    """A tiny config as a nested dict; ``kw`` keys may be dotted (``optim.lr_selector``)."""
+    cfg = {"views": 2, "image_size": 32, "epochs": 2, "batch_size": 8, "seed": 0,
+           "dataset": {"root": cache, "num_per_class": [4, 2, 2]}, "backbone": {"name": "small_cnn"},
+           "logger": {"progress": False, "tensorboard": False}}
+    for key, value in kw.items():
+        node = cfg
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
     return cfg
+
+
+def tiny_model(cache, **kw):
+    cfg = as_config(tiny(cache, **kw))
+    torch.manual_seed(cfg.seed)
+    return cfg, build_mvtn(cfg, num_classes=12)
 
 
 @pytest.fixture(scope="module")
@@ -37,8 +51,15 @@ def full_run(cache, tmp_path_factory):
 
 def test_artifacts_and_metrics(full_run):
     run, m = full_run
-    for name in ("best.pt", "last.pt", "metrics.json"):
+    for name in ("best.pt", "last.pt", "metrics.json", "confusion.json", "confusion.png"):
         assert (run / name).is_file(), name
+    conf_file = json.loads((run / "confusion.json").read_text())
+    assert conf_file["matrix"] == m["confusion_matrix"] and conf_file["classes"] == m["classes"]
+    split = m["step_seconds"]
+    assert set(split) == {"data", "selector", "render", "backbone", "optimizer", "total"}
+    assert all(v >= 0 for v in split.values()) and split["render"] > 0 and split["backbone"] > 0
+    assert abs(sum(v for k, v in split.items() if k != "total") - split["total"]) < 1e-9
+    assert split["total"] * m["steps"] <= sum(m["epoch_seconds"]) + 1e-6  # steps fit inside the epochs
     assert not list(run.glob("*.tmp"))
     disk = json.loads((run / "metrics.json").read_text())
     assert disk["test_acc"] == m["test_acc"]
@@ -57,10 +78,7 @@ def test_artifacts_and_metrics(full_run):
 def test_selector_learns(cache, full_run):
     """G's parameters move: gradients reach the selector through the renderer and C."""
     run, _ = full_run
-    cfg = as_config(tiny(cache))
-    torch.manual_seed(cfg.seed)
-    model = build_mvtn(views=2, selector="mvtn_spherical", backbone="small_cnn", num_classes=12,
-                       renderer=cfg.renderer)
+    _, model = tiny_model(cache)
     init = model.state_dict()
     trained = torch.load(run / "last.pt", weights_only=False)["model"]
     sel = [f"selector.{k}" for k, _ in model.selector.named_parameters()]  # parameters, not BN statistics
@@ -69,7 +87,7 @@ def test_selector_learns(cache, full_run):
     assert moved > 1e-6
     # control: with lr_selector=0 (and so no decay) G stays at the same initialisation
     frozen_run = run.parent / "frozen"
-    train(tiny(cache, epochs=1, lr_selector=0.0), frozen_run)
+    train(tiny(cache, epochs=1, **{"optim.lr_selector": 0.0}), frozen_run)
     frozen = torch.load(frozen_run / "last.pt", weights_only=False)["model"]
     assert max(float((frozen[k] - init[k]).abs().max()) for k in sel) == 0.0
 
@@ -78,9 +96,7 @@ def test_selector_gradient_nonzero(cache):
     from mvtn_exp.data.collate import collate_shapes
     from mvtn_exp.data.synthetic import SyntheticShapes
 
-    cfg = as_config(tiny(cache))
-    torch.manual_seed(0)
-    model = build_mvtn(views=2, selector="mvtn_spherical", backbone="small_cnn", num_classes=12, renderer=cfg.renderer)
+    _, model = tiny_model(cache)
     model.train()
     ds = SyntheticShapes(cache, "train", num_per_class=[4, 2, 2], seed=0, progress=False)
     batch = collate_shapes([ds[i] for i in range(4)])
@@ -92,15 +108,54 @@ def test_selector_gradient_nonzero(cache):
 
 
 def test_resume_reproduces(cache, full_run, tmp_path):
+    """Epoch-boundary resume: 1 epoch, then resume to 2 -> the same metrics as 2 epochs straight."""
     _, full = full_run
     first = train(tiny(cache, epochs=1), tmp_path / "a")
     resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt")), tmp_path / "b")
-    assert resumed["confusion_matrix"] == full["confusion_matrix"]
-    for key in ("test_acc", "test_mean_class_acc", "best_val_acc", "test_loss"):
-        assert abs(resumed[key] - full[key]) <= 1e-6, key
-    for h_full, h_res in zip(full["history"], resumed["history"]):
-        assert abs(h_full["train_loss"] - h_res["train_loss"]) <= 1e-6
+    _assert_same_run(resumed, full)
     assert first["epochs"] == 1
+
+
+def _assert_same_run(a: dict, b: dict) -> None:
+    assert a["confusion_matrix"] == b["confusion_matrix"]
+    for key in ("test_acc", "test_mean_class_acc", "best_val_acc", "test_loss"):
+        assert abs(a[key] - b[key]) <= 1e-6, key
+    for h_a, h_b in zip(a["history"], b["history"], strict=True):
+        assert abs(h_a["train_loss"] - h_b["train_loss"]) <= 1e-6
+        assert abs(h_a["val_acc"] - h_b["val_acc"]) <= 1e-12
+
+
+class Killed(Exception):
+    """Stands in for a kill signal arriving mid-epoch."""
+
+
+def test_crash_mid_epoch_then_resume_matches(cache, full_run, tmp_path, monkeypatch):
+    """Kill the run in the middle of epoch 2 (after 1 of its 3 steps); resuming from last.pt gives
+    exactly the metrics of the uninterrupted run."""
+    import mvtn_exp.engine.trainer as trainer
+    from mvtn_exp.model import MVTN
+
+    _, full = full_run
+    calls = {"n": 0}
+    real_render = MVTN.render
+    steps_per_epoch = -(-12 * 4 // 8)  # 48 shapes, batch 8
+
+    def render(self, batch, *views):
+        if self.training:
+            calls["n"] += 1
+            if calls["n"] == steps_per_epoch + 2:
+                raise Killed()
+        return real_render(self, batch, *views)
+
+    monkeypatch.setattr(MVTN, "render", render)
+    with pytest.raises(Killed):
+        trainer.train(tiny(cache), tmp_path / "crashed")
+    monkeypatch.setattr(MVTN, "render", real_render)
+    last = torch.load(tmp_path / "crashed" / "last.pt", weights_only=False)
+    assert last["epoch"] == 0  # only epoch 1 was completed and saved
+    assert not (tmp_path / "crashed" / "metrics.json").exists()
+    resumed = train(tiny(cache, ckpt_path=str(tmp_path / "crashed" / "last.pt")), tmp_path / "resumed")
+    _assert_same_run(resumed, full)
 
 
 def test_resume_config_mismatch(cache, full_run):
@@ -111,7 +166,7 @@ def test_resume_config_mismatch(cache, full_run):
 
 def test_bad_values_rejected(cache, tmp_path):
     with pytest.raises(ValueError, match="selector"):
-        train(tiny(cache, selector="nope"), tmp_path)
+        train(tiny(cache, **{"selector.name": "nope"}), tmp_path)
     with pytest.raises(Exception):
         as_config({"viewz": 3})
 
@@ -121,28 +176,84 @@ def test_atomic_save_leaves_no_temp(tmp_path):
     assert torch.load(p)["a"].sum() == 2 and [f.name for f in tmp_path.iterdir()] == ["x.pt"]
 
 
-def _cli(args, cwd):
-    return subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", *args], cwd=cwd, capture_output=True,
-                          text=True, timeout=120)
+def _cli(args, cwd, module="train"):
+    return subprocess.run([sys.executable, "-m", f"mvtn_exp.cli.{module}", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=300)
 
 
-def test_cli_prints_metrics_path_last(cache, tmp_path):
+def _tiny_args(cache) -> list[str]:
+    return ["epochs=1", "views=2", "image_size=32", "dataset.num_per_class=[4,2,2]", "batch_size=8",
+            f"dataset.root={cache}", "logger.progress=false"]
+
+
+def test_cli_train_then_eval(cache, tmp_path):
+    """mvtn-train prints metrics.json's path last and logs to TensorBoard; mvtn-eval rebuilds the
+    model from best.pt's config and reproduces the test metrics."""
     run = tmp_path / "run"
-    r = _cli(["epochs=1", "views=2", "image_size=32", "num_per_class=[4,2,2]", "batch_size=8", f"data_dir={cache}",
-              "progress=false", f"hydra.run.dir={run}"], ROOT)
+    r = _cli([*_tiny_args(cache), f"hydra.run.dir={run}"], ROOT)
     assert r.returncode == 0, r.stderr[-2000:]
     last = r.stdout.strip().splitlines()[-1]
     assert Path(last) == run / "metrics.json" and Path(last).is_file()
+    assert list((run / "tb").glob("events.out.tfevents.*")), "no TensorBoard event file"
+    trained = json.loads(Path(last).read_text())
+
+    out = tmp_path / "eval"
+    r = _cli([f"ckpt={run / 'best.pt'}", "progress=false", f"hydra.run.dir={out}"], ROOT, module="eval")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert Path(r.stdout.strip().splitlines()[-1]) == out / "metrics.json"
+    ev = json.loads((out / "metrics.json").read_text())
+    assert ev["confusion_matrix"] == trained["confusion_matrix"]
+    assert abs(ev["test_acc"] - trained["test_acc"]) < 1e-12 and ev["split"] == "test"
+    assert (out / "confusion.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_cli_unknown_key_fails(tmp_path):
-    r = _cli(["viewz=3", f"hydra.run.dir={tmp_path / 'run'}"], ROOT)
-    assert r.returncode != 0 and "viewz" in r.stderr
+def test_eval_checkpoint_with_other_schema_names_the_key(cache, full_run, tmp_path):
+    run, _ = full_run
+    state = torch.load(run / "best.pt", weights_only=False)
+    state["config"]["backbone"]["depth"] = 18  # a key this version does not know
+    save_atomic(tmp_path / "old.pt", state)
+    r = _cli([f"ckpt={tmp_path / 'old.pt'}", f"hydra.run.dir={tmp_path / 'e'}"], ROOT, module="eval")
+    assert r.returncode == 2 and "depth" in r.stderr and "old.pt" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
 
 
-def test_cli_bad_value_one_line(tmp_path, cache):
-    r = _cli(["selector=nope", f"data_dir={cache}", f"hydra.run.dir={tmp_path / 'run'}"], ROOT)
-    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("mvtn-train: error: selector=")
+def test_cli_config_errors_are_one_line_exit_2(tmp_path):
+    cases = {"viewz=3": ["viewz", "allowed keys", "views"],
+             "selector=nope": ["selector/nope", "mvtn_spherical", "circular"],
+             "optim.lr=abc": ["optim.lr", "optim/adamw.yaml"],
+             "selector.name=nope": ["selector=", "expected one of", "selector/mvtn_spherical.yaml"]}
+    for arg, needles in cases.items():
+        r = _cli([arg, f"hydra.run.dir={tmp_path / 'run'}"], ROOT)
+        err = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(err) == 1 and "Traceback" not in r.stderr, (arg, r.stderr[-1000:])
+        assert err[0].startswith("mvtn-train: config error in mvtn_exp/conf/"), err
+        for needle in needles:
+            assert needle in err[0], (arg, needle, err[0])
+    assert not (tmp_path / "run").exists()
+
+
+def test_cli_real_dataset_missing(tmp_path):
+    r = _cli(["+experiment=modelnet_spherical", f"paths.data_dir={tmp_path / 'nodata'}",
+              f"hydra.run.dir={tmp_path / 'run'}"], ROOT)
+    assert r.returncode == 2
+    assert "dataset modelnet40 not found at" in r.stderr and "expected layout" in r.stderr
+
+
+def test_cli_multirun_summary(cache, tmp_path):
+    sweep = tmp_path / "sweep"
+    r = _cli(["-m", *_tiny_args(cache), "selector=circular,spherical", "seed=0,1", "logger.tensorboard=false",
+              f"hydra.sweep.dir={sweep}"], ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
+    assert len(jobs) == 4 and all("selector=" in j and "seed=" in j for j in jobs), jobs
+    rows = list(csv.DictReader(open(sweep / "summary.csv")))
+    assert len(rows) == 4 and all(r_["status"] == "ok" for r_ in rows)
+    for row in rows:
+        m = json.loads((sweep / row["job"] / "metrics.json").read_text())
+        assert abs(float(row["test_acc"]) - m["test_acc"]) < 1e-4
+    md = (sweep / "summary.md").read_text()
+    settings = [ln for ln in md.splitlines() if ln.startswith("| ") and "± " in ln]
+    assert len(settings) == 2 and all("| 2 | 0 |" in ln for ln in settings), settings
 
 
 def _patched_build(monkeypatch, patch):
@@ -150,8 +261,8 @@ def _patched_build(monkeypatch, patch):
 
     real = trainer.build_mvtn
 
-    def build(**kw):
-        model = real(**kw)
+    def build(*a, **kw):
+        model = real(*a, **kw)
         patch(model)
         return model
 
@@ -168,9 +279,7 @@ def test_nonfinite_gradients_are_skipped(cache, tmp_path, monkeypatch):
     m = train(tiny(cache, epochs=1), tmp_path)
     assert m["skipped_steps"] == 12 * 4 // 8  # every step of the one epoch
     # nothing was applied: the poisoned head weight equals its fresh initialisation
-    cfg = as_config(tiny(cache))
-    torch.manual_seed(cfg.seed)
-    fresh = build_mvtn(views=2, selector="mvtn_spherical", backbone="small_cnn", num_classes=12, renderer=cfg.renderer)
+    _, fresh = tiny_model(cache)
     assert torch.equal(torch.load(tmp_path / "last.pt", weights_only=False)["model"]["mvnet.head.weight"],
                        fresh.state_dict()["mvnet.head.weight"])
 

@@ -1,12 +1,21 @@
-"""Shared CLI plumbing: compose-time config errors as one clear line and exit code 2."""
+"""Shared CLI plumbing: config errors (unknown key or option, wrong type, bad value) become one
+line naming the key, the config file and the allowed keys or values, and exit code 2."""
 from __future__ import annotations
 
 import dataclasses
+import re
 import sys
+from typing import Callable, Optional
 
 from omegaconf import OmegaConf
 
 CONF_MODULE = "mvtn_exp.conf"
+CONF_DIR = CONF_MODULE.replace(".", "/")
+# Hydra flags after which we let Hydra handle the command line itself (help, config printing, ...)
+HYDRA_INFO_FLAGS = ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", "--resolve", "--version",
+                    "--shell-completion", "-sc", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn",
+                    "--config-dir", "-cd", "--experimental-rerun")
+MULTIRUN_FLAGS = ("-m", "--multirun")
 
 
 def _allowed_keys(node_type, path: list[str]) -> list[str]:
@@ -24,40 +33,107 @@ def _allowed_keys(node_type, path: list[str]) -> list[str]:
     return sorted(f.name for f in dataclasses.fields(node_type)) if dataclasses.is_dataclass(node_type) else []
 
 
-def describe(exc: Exception, schema) -> str:
-    """One line: the offending key, what went wrong and, for unknown keys, the allowed ones."""
+def describe(exc: Exception, schema) -> tuple[str, str]:
+    """(offending key or group, one line: what went wrong and the allowed keys or options)."""
     text = str(exc).strip()
-    first = text.splitlines()[0] if text else type(exc).__name__
-    key = next((ln.split(":", 1)[1].strip() for ln in text.splitlines() if ln.strip().startswith("full_key:")), "")
-    msg = f"{first}" + (f" (key '{key}'" if key else "")
+    lines = text.splitlines()
+    first = lines[0] if lines else type(exc).__name__
+    missing = re.search(r"Could not find '([^']+)'", first)
+    if missing:  # an unknown group option: list the available ones
+        group = missing.group(1).rsplit("/", 1)[0]
+        start = next((i for i, ln in enumerate(lines) if ln.startswith("Available options")), len(lines))
+        options = []
+        for ln in lines[start + 1:]:
+            if not ln.startswith("\t"):
+                break
+            options.append(ln.strip())
+        msg = first.split(": ", 1)[-1] if first.startswith("In '") else first
+        return missing.group(1), msg + (f"; available options for {group}: {', '.join(options)}" if options else "")
+    key = next((ln.split(":", 1)[1].strip() for ln in lines if ln.strip().startswith("full_key:")), "")
+    if not key:  # our own validation errors start with "key=value: ..."
+        m = re.match(r"([A-Za-z_][\w.]*)=", first)
+        key = m.group(1) if m else ""
+    msg = first
     if key and ("not in" in first or "not a valid" in first or "Could not override" in first):
         allowed = _allowed_keys(schema, key.split(".")[:-1])
         if allowed:
-            msg += f"; allowed keys here: {', '.join(allowed)}"
-    if key:
-        msg += ")"
-    return msg
+            msg += f" (allowed keys here: {', '.join(allowed)})"
+    elif key and "full_key" in text:
+        msg += f" (key '{key}')"
+    return key, msg
 
 
-def check_overrides(prog: str, config_name: str, schema, argv: list[str]) -> None:
-    """Compose ``config_name`` with the command-line overrides; on a config error print one line
-    naming the key, the config file and the allowed keys, and exit with code 2 (no traceback).
-    Multirun sweeps and Hydra's own flags are left to Hydra."""
-    if any(a.startswith("-") for a in argv):
+def _config_file(key: str, choices: dict, config_name: str) -> str:
+    """The file a key's value comes from: its group's chosen option file, else the primary config."""
+    group = key.split(".")[0] if key else ""
+    if group in choices and choices[group]:
+        return f"{CONF_DIR}/{group}/{choices[group]}.yaml"
+    if "/" in key:  # "experiment/nope"
+        return f"{CONF_DIR}/{key}.yaml"
+    return f"{CONF_DIR}/{config_name}.yaml"
+
+
+def _choices(compose, config_name: str, overrides: list[str]) -> dict:
+    try:
+        cfg = compose(config_name, overrides=overrides, return_hydra_config=True)
+    except Exception:
+        return {}
+    return {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra")}
+
+
+def sweep_variants(overrides: list[str]) -> list[list[str]]:
+    """The override lists to check for a multirun: the first value of every swept key, and each
+    other value of each swept key on its own (so a bad value anywhere is caught, in linear time)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    base, swept = [], []
+    for o in parsed:
+        prefix = o.get_key_element()
+        if o.is_sweep_override():
+            values = list(o.sweep_string_iterator())
+            base.append(f"{prefix}={values[0]}")
+            swept.append((len(base) - 1, prefix, values[1:]))
+        else:
+            base.append(o.input_line)
+    variants = [base]
+    for idx, prefix, rest in swept:
+        for v in rest:
+            variant = list(base)
+            variant[idx] = f"{prefix}={v}"
+            variants.append(variant)
+    return variants
+
+
+def check_overrides(prog: str, config_name: str, schema, argv: list[str],
+                    validate: Optional[Callable] = None) -> None:
+    """Compose ``config_name`` with the command-line overrides (each value of a ``-m`` sweep) and
+    run ``validate(cfg_object)``; on a config error print one line naming the key, the config
+    file and the allowed keys / options / values, and exit with code 2 (no traceback)."""
+    if any(a in HYDRA_INFO_FLAGS or a.split("=")[0] in HYDRA_INFO_FLAGS for a in argv):
         return
     from hydra import compose, initialize_config_module
 
-    overrides = [a for a in argv if not a.lstrip("+~").startswith("hydra.")]
+    overrides = [a for a in argv if a not in MULTIRUN_FLAGS and not a.lstrip("+~").startswith("hydra.")]
+    choices: dict = {}
     try:
+        variants = sweep_variants(overrides) if any(a in MULTIRUN_FLAGS for a in argv) else [overrides]
         with initialize_config_module(version_base="1.3", config_module=CONF_MODULE):
-            cfg = compose(config_name, overrides=overrides)
-            OmegaConf.to_object(cfg)
+            for variant in variants:
+                # the group options chosen (to name the file of a bad key), from the group overrides alone
+                groups_only = [o for o in variant if "." not in o.split("=", 1)[0]]
+                choices = _choices(compose, config_name, groups_only)
+                cfg = compose(config_name, overrides=variant)
+                OmegaConf.set_struct(cfg, False)
+                obj = OmegaConf.to_object(cfg)
+                if validate is not None:
+                    validate(obj)
     except Exception as exc:  # composition, type and validation errors
         cause = exc  # prefer the innermost error that names the key
         while cause.__cause__ is not None:
             cause = cause.__cause__
         if "full_key:" not in str(cause):
             cause = exc
-        print(f"{prog}: config error in {CONF_MODULE.replace('.', '/')}/{config_name}.yaml: {describe(cause, schema)}",
-              file=sys.stderr)
+        key, msg = describe(cause, schema)
+        print(f"{prog}: config error in {_config_file(key, choices, config_name)}: {msg}", file=sys.stderr)
         sys.exit(2)

@@ -7,8 +7,9 @@ from pathlib import Path
 
 import torch
 
-# keys whose change makes a checkpoint's weights meaningless for the new config
-MODEL_KEYS = ("views", "selector", "backbone", "shape", "image_size")
+# config keys (dotted) whose change makes a checkpoint's weights meaningless for the new config
+MODEL_KEYS = ("views", "image_size", "selector", "point_encoder", "backbone.name", "mvnet", "dataset.name",
+              "dataset.shape", "dataset.variant", "task.name")
 
 
 class CheckpointMismatch(ValueError):
@@ -34,16 +35,44 @@ def save_atomic(path, payload: dict) -> Path:
 
 
 def load(path, map_location="cpu") -> dict:
-    """Read a checkpoint written by ``save_atomic`` (a clear error for a missing file)."""
+    """Read a checkpoint written by ``save_atomic`` (a clear error for a missing or unreadable file)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"ckpt_path={str(path)!r}: no such checkpoint file")
-    return torch.load(path, map_location=map_location, weights_only=False)
+        raise FileNotFoundError(f"checkpoint {str(path)!r}: no such file")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as exc:
+        raise CheckpointMismatch(f"checkpoint {str(path)!r} cannot be read ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(payload, dict) or "model" not in payload or "config" not in payload:
+        raise CheckpointMismatch(f"checkpoint {str(path)!r} was not written by mvtn-train (no model/config)")
+    return payload
+
+
+def _get(cfg: dict, dotted: str):
+    node = cfg
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _leaves(value, prefix: str) -> dict:
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(_leaves(v, f"{prefix}.{k}"))
+        return out
+    return {prefix: value}
 
 
 def check_compatible(saved: dict, current: dict, keys=MODEL_KEYS) -> None:
-    """Raise ``CheckpointMismatch`` naming every model-defining key that differs."""
-    diff = [k for k in keys if saved.get(k) != current.get(k)]
+    """Raise ``CheckpointMismatch`` naming every model-defining setting (dotted key) that differs."""
+    diff = []
+    for key in keys:
+        old, new = _leaves(_get(saved, key), key), _leaves(_get(current, key), key)
+        for leaf in sorted(set(old) | set(new)):
+            if old.get(leaf) != new.get(leaf):
+                diff.append(f"{leaf}: checkpoint={old.get(leaf)!r} vs config={new.get(leaf)!r}")
     if diff:
-        detail = ", ".join(f"{k}: checkpoint={saved.get(k)!r} vs config={current.get(k)!r}" for k in diff)
-        raise CheckpointMismatch(f"checkpoint config differs in model-defining key(s) {diff} ({detail})")
+        raise CheckpointMismatch("checkpoint config differs in model-defining settings: " + "; ".join(diff))

@@ -1,8 +1,10 @@
 """The one training loop: ``train(cfg, run_dir) -> metrics`` (a plain, testable function).
 
-Per epoch: train (AdamW, two groups C/G, G's gradients clipped, non-finite steps skipped),
-validate, step the LR schedule, write ``last.pt`` (and ``best.pt`` on a new best val accuracy).
-At the end ``best.pt`` is evaluated on the test split and ``metrics.json`` is written.
+Per epoch: train (AdamW, two groups C/G, G's gradients clipped before the step, non-finite steps
+skipped and counted), validate, step the LR schedule, write ``last.pt`` (and ``best.pt`` on a new
+best validation accuracy: model selection never looks at the test split). At the end ``best.pt``
+is evaluated on the test split and ``metrics.json``, ``confusion.json`` and ``confusion.png`` are
+written. Data flows shape -> G -> R -> C -> loss (see ``MVTN``).
 """
 from __future__ import annotations
 
@@ -11,84 +13,42 @@ import logging
 import math
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
-from typing import Optional
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torch import nn
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from ..data.collate import collate_shapes
-from ..data.synthetic import ROTATIONS, SyntheticShapes
-from ..model import SHAPES, MVTN, build_mvtn
-from ..render.config import RendererConfig
-from ..selectors import SELECTORS
+from ..data.datasets import build_dataset
+from ..model import MVTN, build_mvtn
+from ..schema import TrainConfig
+from ..tasks import classification
+from ..viz.plots import confusion_png
 from . import checkpoint, seeding
+from .run_logger import RunLogger
+from .step_timer import StepTimer
 
 log = logging.getLogger("mvtn-train")
-SCHEDULES = ("cosine", "step")
+SPLITS = ("train", "val", "test")
 
 
 class TrainingDiverged(RuntimeError):
     """The loss became non-finite; the run stops (the last written checkpoints stay intact)."""
 
 
-@dataclass
-class TrainConfig:
-    """``mvtn-train`` settings (also the Hydra schema). ``renderer.image_size`` follows ``image_size``."""
-
-    views: int = 4
-    image_size: int = 64
-    epochs: int = 8
-    batch_size: int = 16
-    seed: int = 0
-    device: str = "cpu"
-    ckpt_path: Optional[str] = None
-    shape: str = "mesh"
-    selector: str = "mvtn_spherical"
-    backbone: str = "small_cnn"
-    lr: float = 1e-3
-    lr_selector: float = 1e-4
-    weight_decay: float = 0.01
-    clip_selector: float = 30.0
-    schedule: str = "cosine"
-    step_size: int = 3
-    step_gamma: float = 0.1
-    num_per_class: list[int] = field(default_factory=lambda: [24, 6, 12])
-    rotate: str = "none"
-    data_dir: str = "outputs/cache/synthetic"
-    num_workers: int = 0
-    progress: bool = True
-    renderer: RendererConfig = field(default_factory=RendererConfig)
-
-
 def as_config(cfg) -> TrainConfig:
-    """TrainConfig | DictConfig | dict -> a validated TrainConfig (type-checked against the schema)."""
+    """TrainConfig | DictConfig | dict -> a validated TrainConfig (type-checked against the schema,
+    interpolations resolved)."""
+    base = OmegaConf.structured(TrainConfig)
     if isinstance(cfg, TrainConfig):
-        node = OmegaConf.structured(cfg)
+        node = OmegaConf.merge(base, OmegaConf.structured(cfg))
     else:
-        if isinstance(cfg, DictConfig):
-            cfg = OmegaConf.to_container(cfg, resolve=True)
-        node = OmegaConf.merge(OmegaConf.structured(TrainConfig), cfg)
+        node = OmegaConf.merge(base, cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg))
     obj: TrainConfig = OmegaConf.to_object(node)
-    if not isinstance(obj.renderer, RendererConfig):  # pragma: no cover - OmegaConf always builds it
-        obj.renderer = RendererConfig(**obj.renderer)
-    obj.renderer = RendererConfig(**{**asdict(obj.renderer), "image_size": obj.image_size}).validate()
-    for key, allowed in (("shape", SHAPES), ("selector", tuple(SELECTORS)), ("schedule", SCHEDULES),
-                         ("rotate", ROTATIONS)):
-        if getattr(obj, key) not in allowed:
-            raise ValueError(f"{key}={getattr(obj, key)!r}: expected one of {sorted(allowed)}")
-    for key in ("views", "image_size", "epochs", "batch_size", "step_size"):
-        if getattr(obj, key) < 1:
-            raise ValueError(f"{key}={getattr(obj, key)!r}: must be >= 1")
-    if obj.seed < 0 or obj.num_workers < 0 or obj.clip_selector <= 0 or obj.lr <= 0 or obj.lr_selector < 0:
-        raise ValueError("need seed >= 0, num_workers >= 0, clip_selector > 0, lr > 0, lr_selector >= 0")
-    if len(obj.num_per_class) != 3 or min(obj.num_per_class) < 1:
-        raise ValueError(f"num_per_class={obj.num_per_class}: expected 3 counts >= 1 (train, val, test)")
-    return obj
+    return obj.validate()
 
 
 def config_dict(cfg: TrainConfig) -> dict:
@@ -96,36 +56,37 @@ def config_dict(cfg: TrainConfig) -> dict:
 
 
 # ----------------------------------------------------------------------------- pieces
-def make_loaders(cfg: TrainConfig) -> dict[str, DataLoader]:
-    loaders = {}
-    for split in ("train", "val", "test"):
-        ds = SyntheticShapes(cfg.data_dir, split, num_per_class=cfg.num_per_class, seed=cfg.seed, rotate=cfg.rotate,
-                             as_points=cfg.shape == "points", progress=cfg.progress)
-        loaders[split] = DataLoader(ds, batch_size=cfg.batch_size, shuffle=False, collate_fn=collate_shapes,
-                                    num_workers=cfg.num_workers)
-    return loaders
+def make_datasets(cfg: TrainConfig) -> dict:
+    return {split: build_dataset(cfg.dataset, split, progress=cfg.logger.progress) for split in SPLITS}
+
+
+def eval_loader(cfg: TrainConfig, dataset) -> DataLoader:
+    return DataLoader(dataset, batch_size=cfg.batch_size, shuffle=False, collate_fn=collate_shapes,
+                      num_workers=cfg.dataset.num_workers)
 
 
 def train_loader(cfg: TrainConfig, dataset, epoch: int) -> DataLoader:
-    """The shuffled train loader of ``epoch``: its order depends only on (seed, epoch), so resume is exact."""
+    """The shuffled train loader of ``epoch``: its order depends only on (seed, epoch), so resume is exact.
+    The last incomplete batch is dropped when it would hold a single shape (BatchNorm needs >= 2)."""
     g = torch.Generator().manual_seed(cfg.seed * 100003 + epoch)
+    drop_last = len(dataset) % cfg.batch_size == 1
     return DataLoader(dataset, batch_size=cfg.batch_size, shuffle=True, generator=g, collate_fn=collate_shapes,
-                      num_workers=cfg.num_workers)
+                      num_workers=cfg.dataset.num_workers, drop_last=drop_last)
 
 
 def lr_factor(cfg: TrainConfig, epoch: int) -> float:
     """Multiplier of the base learning rates during ``epoch`` (0-based)."""
-    if cfg.schedule == "cosine":
+    if cfg.optim.schedule == "cosine":
         return 0.5 * (1.0 + math.cos(math.pi * epoch / cfg.epochs))
-    return cfg.step_gamma ** (epoch // cfg.step_size)
+    return cfg.optim.step_gamma ** (epoch // cfg.optim.step_size)
 
 
 def make_optimizer(cfg: TrainConfig, model: MVTN):
     groups = model.parameter_groups()
-    params = [{"params": groups["mvnet"], "lr": cfg.lr, "name": "mvnet"}]
+    params = [{"params": groups["mvnet"], "lr": cfg.optim.lr, "name": "mvnet"}]
     if groups["selector"]:
-        params.append({"params": groups["selector"], "lr": cfg.lr_selector, "name": "selector"})
-    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        params.append({"params": groups["selector"], "lr": cfg.optim.lr_selector, "name": "selector"})
+    opt = torch.optim.AdamW(params, lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: lr_factor(cfg, e))
     return opt, sched
 
@@ -134,55 +95,118 @@ def _grads_finite(params) -> bool:
     return all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None)
 
 
-def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, device) -> dict:
+def _grad_norm(params) -> float:
+    grads = [p.grad.detach().pow(2).sum() for p in params if p.grad is not None]
+    return float(torch.stack(grads).sum().sqrt()) if grads else 0.0
+
+
+def view_offsets(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
+    """Mean |u - u0| in degrees of predicted views ``[N, M]`` (0 for fixed selectors)."""
+    init = getattr(model.selector, "initial_views", None)
+    if init is None or azim.numel() == 0:
+        return {"view_offset_azim": 0.0, "view_offset_elev": 0.0}
+    a0, e0, _ = init(1)
+    return {"view_offset_azim": float((azim - a0.cpu()).abs().mean()),
+            "view_offset_elev": float((elev - e0.cpu()).abs().mean())}
+
+
+class _Epoch:
+    """Running sums of one training epoch."""
+
+    def __init__(self):
+        self.loss, self.correct, self.seen, self.skipped, self.clipped = 0.0, 0, 0, 0, 0
+        self.g_norm_sum, self.c_norm_sum, self.steps = 0.0, 0.0, 0
+
+    def result(self) -> dict:
+        n, s = max(self.seen, 1), max(self.steps, 1)
+        return {"loss": self.loss / n, "acc": self.correct / n, "skipped": self.skipped, "clipped": self.clipped,
+                "grad_norm_selector": self.g_norm_sum / s, "grad_norm_mvnet": self.c_norm_sum / s}
+
+
+def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss_fn, timer: StepTimer,
+                    logger: RunLogger, step: int) -> tuple[dict, int]:
+    """One pass over ``loader``; returns (epoch sums, global step after it)."""
     model.train()
-    sel_params = model.parameter_groups()["selector"]
-    all_params = [p for g in opt.param_groups for p in g["params"]]
-    loss_sum, correct, seen, skipped = 0.0, 0, 0, 0
-    bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=not cfg.progress)
-    for batch in bar:
-        labels = batch["labels"].to(device)
-        out = model(batch)
-        loss = nn.functional.cross_entropy(out["logits"], labels)
+    groups = model.parameter_groups()
+    all_params = groups["mvnet"] + groups["selector"]
+    acc = _Epoch()
+    bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=not cfg.logger.progress)
+    it = iter(bar)
+    while True:
+        with timer.stage("data"):
+            batch = next(it, None)
+        if batch is None:
+            break
+        labels = batch["labels"].to(model.device)
+        with timer.stage("selector"):
+            views = model.select(batch)
+        with timer.stage("render"):
+            images = model.render(batch, *views)
+        with timer.stage("backbone"):
+            logits, _ = model.mvnet(images)
+            loss = loss_fn(logits, labels)
         if not bool(torch.isfinite(loss.detach())):
-            raise TrainingDiverged(f"epoch {epoch + 1}: non-finite loss {float(loss.detach())} (batch {batch['names'][:3]}...); "
-                                   "stopping, the last written checkpoint is intact")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if not _grads_finite(all_params):
-            skipped += 1
+            raise TrainingDiverged(f"epoch {epoch + 1}, step {step + 1}: non-finite loss {float(loss.detach())} "
+                                   f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
+        with timer.stage("optimizer"):
             opt.zero_grad(set_to_none=True)
-            log.warning("epoch %d: non-finite gradients, step skipped", epoch + 1)
-            continue
-        if sel_params:
-            torch.nn.utils.clip_grad_norm_(sel_params, cfg.clip_selector)
-        opt.step()
+        timer.backward(loss, views, images)
+        with timer.stage("optimizer"):
+            if not _grads_finite(all_params):
+                acc.skipped += 1
+                opt.zero_grad(set_to_none=True)
+                log.warning("epoch %d step %d: non-finite gradients, step skipped", epoch + 1, step + 1)
+                step += 1
+                continue
+            c_norm = _grad_norm(groups["mvnet"])
+            g_norm = 0.0
+            if groups["selector"]:
+                g_norm = float(torch.nn.utils.clip_grad_norm_(groups["selector"], cfg.optim.clip_selector))
+                acc.clipped += int(g_norm > cfg.optim.clip_selector)
+            opt.step()
+        timer.step_done()
         n = len(labels)
-        loss_sum += float(loss.detach()) * n
-        correct += int((out["logits"].argmax(1) == labels).sum())
-        seen += n
-        bar.set_postfix(loss=f"{loss_sum / max(seen, 1):.3f}", acc=f"{correct / max(seen, 1):.3f}")
-    return {"loss": loss_sum / max(seen, 1), "acc": correct / max(seen, 1), "skipped": skipped}
+        acc.loss += float(loss.detach()) * n
+        acc.correct += int((logits.detach().argmax(1) == labels).sum())
+        acc.seen += n
+        acc.steps += 1
+        acc.g_norm_sum += g_norm
+        acc.c_norm_sum += c_norm
+        step += 1
+        if step % cfg.logger.log_every == 0:
+            logger.scalars({"train/loss": float(loss.detach()), "grad_norm/selector": g_norm,
+                            "grad_norm/mvnet": c_norm,
+                            **{f"lr/{g['name']}": g["lr"] for g in opt.param_groups}}, step)
+        bar.set_postfix(loss=f"{acc.loss / max(acc.seen, 1):.3f}", acc=f"{acc.correct / max(acc.seen, 1):.3f}")
+    return acc.result(), step
 
 
-@torch.no_grad()
-def evaluate(model: MVTN, loader, num_classes: int, device, desc: str = "eval", progress: bool = True) -> dict:
-    """Eval mode (renderer: camera light, white) -> overall acc, mean per-class acc, confusion [true][pred]."""
-    model.eval()
-    conf = torch.zeros(num_classes, num_classes, dtype=torch.long)
-    loss_sum = 0.0
-    for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
-        labels = batch["labels"].to(device)
-        logits = model(batch)["logits"]
-        loss_sum += float(nn.functional.cross_entropy(logits, labels, reduction="sum"))
-        pred = logits.argmax(1).cpu()
-        conf.index_put_((batch["labels"], pred), torch.ones_like(pred), accumulate=True)
-    total = int(conf.sum())
-    per_class = conf.diag().double() / conf.sum(1).clamp(min=1).double()
-    present = conf.sum(1) > 0
-    return {"acc": float(conf.diag().sum()) / max(total, 1),
-            "mean_class_acc": float(per_class[present].mean()) if bool(present.any()) else 0.0,
-            "loss": loss_sum / max(total, 1), "confusion": conf.tolist(), "n": total}
+def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict) -> None:
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["optimizer"])
+    sched.load_state_dict(state["scheduler"])
+    start = int(state["epoch"]) + 1
+    # the schedule is a function of (epoch, epochs): re-derive it (epochs may have grown)
+    for g, base in zip(opt.param_groups, sched.base_lrs):
+        g["lr"] = base * lr_factor(cfg, start)
+    sched.last_epoch = start
+    seeding.set_rng_state(state["rng"])
+    src_best = Path(cfg.ckpt_path).with_name("best.pt")
+    if src_best.is_file() and src_best.resolve() != (run_dir / "best.pt").resolve():
+        shutil.copyfile(src_best, run_dir / "best.pt")
+    print(f"resumed from {cfg.ckpt_path} at epoch {start + 1}/{cfg.epochs}", flush=True)
+
+
+def write_results(run_dir: Path, metrics: dict) -> Path:
+    """``metrics.json``, ``confusion.json`` and ``confusion.png`` in ``run_dir``; returns metrics.json's path."""
+    conf = {"classes": metrics["classes"], "rows": "true class", "columns": "predicted class",
+            "matrix": metrics["confusion_matrix"]}
+    (run_dir / "confusion.json").write_text(json.dumps(conf, indent=1))
+    confusion_png(metrics["confusion_matrix"], metrics["classes"], run_dir / "confusion.png",
+                  title=f"{metrics.get('split', 'test')}: acc {metrics['test_acc']:.3f}")
+    path = run_dir / "metrics.json"
+    path.write_text(json.dumps(metrics, indent=2))
+    return path
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -200,66 +224,84 @@ def train(cfg, run_dir) -> dict:
         checkpoint.check_compatible(resume["config"], cfg_dict)
 
     seeding.seed_everything(cfg.seed)
-    loaders = make_loaders(cfg)
-    classes = loaders["train"].dataset.classes
-    model = build_mvtn(views=cfg.views, selector=cfg.selector, backbone=cfg.backbone, num_classes=len(classes),
-                       renderer=cfg.renderer, shape=cfg.shape).to(device)
+    datasets = make_datasets(cfg)
+    classes = list(datasets["train"].classes)
+    loaders = {s: eval_loader(cfg, datasets[s]) for s in ("val", "test")}
+    model = build_mvtn(cfg, num_classes=len(classes)).to(device)
     opt, sched = make_optimizer(cfg, model)
+    loss_fn = classification.loss_fn(cfg.task)
 
-    start, best_acc, best_epoch, skipped, history = 0, -1.0, -1, 0, []
+    start, best_acc, best_epoch, skipped, history, step = 0, -1.0, -1, 0, [], 0
     if resume is not None:
-        model.load_state_dict(resume["model"])
-        opt.load_state_dict(resume["optimizer"])
-        sched.load_state_dict(resume["scheduler"])
+        _resume(cfg, run_dir, model, opt, sched, resume)
         start = int(resume["epoch"]) + 1
         best_acc, best_epoch = float(resume["best_val_acc"]), int(resume["best_epoch"])
-        skipped, history = int(resume["skipped_steps"]), list(resume["history"])
-        # the schedule is a function of (epoch, epochs): re-derive it (epochs may have grown)
-        for g, base in zip(opt.param_groups, sched.base_lrs):
-            g["lr"] = base * lr_factor(cfg, start)
-        sched.last_epoch = start
-        seeding.set_rng_state(resume["rng"])
-        src_best = Path(cfg.ckpt_path).with_name("best.pt")
-        if src_best.is_file() and src_best.resolve() != (run_dir / "best.pt").resolve():
-            shutil.copyfile(src_best, run_dir / "best.pt")
-        print(f"resumed from {cfg.ckpt_path} at epoch {start + 1}/{cfg.epochs}")
+        skipped, history, step = int(resume["skipped_steps"]), list(resume["history"]), int(resume.get("step", 0))
 
     def payload(epoch):
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                "epoch": epoch, "rng": seeding.rng_state(), "config": cfg_dict, "best_val_acc": best_acc,
-                "best_epoch": best_epoch, "skipped_steps": skipped, "history": history, "classes": classes}
+                "epoch": epoch, "step": step, "rng": seeding.rng_state(), "config": cfg_dict,
+                "best_val_acc": best_acc, "best_epoch": best_epoch, "skipped_steps": skipped, "history": history,
+                "classes": classes}
 
-    for epoch in range(start, cfg.epochs):
-        t0 = time.perf_counter()
-        tr = train_one_epoch(model, train_loader(cfg, loaders["train"].dataset, epoch), opt, cfg, epoch, device)
-        skipped += tr["skipped"]
-        val = evaluate(model, loaders["val"], len(classes), device, desc="val", progress=cfg.progress)
-        sched.step()
-        seconds = time.perf_counter() - t0
-        history.append({"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"], "val_acc": val["acc"],
-                        "val_loss": val["loss"], "skipped": tr["skipped"], "seconds": seconds})
-        improved = val["acc"] > best_acc
-        if improved:
-            best_acc, best_epoch = val["acc"], epoch
-        state = payload(epoch)
-        if improved:
-            checkpoint.save_atomic(run_dir / "best.pt", state)
-        checkpoint.save_atomic(run_dir / "last.pt", state)
-        print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
-              f"val acc {val['acc']:.3f}{' (best)' if improved else ''} | {seconds:.1f}s", flush=True)
+    logger = RunLogger(run_dir, cfg.logger)
+    timer = StepTimer(device)
+    try:
+        for epoch in range(start, cfg.epochs):
+            t0 = time.perf_counter()
+            lrs = {f"lr_{g['name']}": g["lr"] for g in opt.param_groups}
+            tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch), opt, cfg, epoch, loss_fn,
+                                       timer, logger, step)
+            skipped += tr["skipped"]
+            val = classification.evaluate(model, loaders["val"], len(classes), desc="val",
+                                          progress=cfg.logger.progress)
+            sched.step()
+            seconds = time.perf_counter() - t0
+            offsets = view_offsets(model, val["azim"], val["elev"])
+            history.append({"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
+                            "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
+                            "skipped": tr["skipped"], "clipped": tr["clipped"],
+                            "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
+                            **offsets, **lrs, "seconds": seconds})
+            logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
+                            "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
+                            "views/offset_azim": offsets["view_offset_azim"],
+                            "views/offset_elev": offsets["view_offset_elev"]}, step)
+            logger.histogram("views/azim", val["azim"], step)
+            logger.histogram("views/elev", val["elev"], step)
+            if val["images"] is not None:
+                logger.views("views/val", val["images"], step)
+            improved = val["acc"] > best_acc
+            if improved:
+                best_acc, best_epoch = val["acc"], epoch
+            state = payload(epoch)
+            if improved:
+                checkpoint.save_atomic(run_dir / "best.pt", state)
+            checkpoint.save_atomic(run_dir / "last.pt", state)
+            print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
+                  f"val acc {val['acc']:.3f}{' (best)' if improved else ''} | "
+                  f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | {seconds:.1f}s",
+                  flush=True)
 
-    best = checkpoint.load(run_dir / "best.pt", map_location=device)
-    model.load_state_dict(best["model"])
-    test = evaluate(model, loaders["test"], len(classes), device, desc="test", progress=cfg.progress)
+        best = checkpoint.load(run_dir / "best.pt", map_location=device)
+        model.load_state_dict(best["model"])
+        test = classification.evaluate(model, loaders["test"], len(classes), desc="test",
+                                       progress=cfg.logger.progress)
+        logger.scalars({"test/acc": test["acc"], "test/mean_class_acc": test["mean_class_acc"]}, step)
+    finally:
+        logger.close()
+
     metrics = {
         "test_acc": test["acc"], "test_mean_class_acc": test["mean_class_acc"], "test_loss": test["loss"],
-        "confusion_matrix": test["confusion"], "classes": classes, "test_size": test["n"],
-        "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "skipped_steps": skipped,
-        "epoch_seconds": [h["seconds"] for h in history],
+        "test_per_class_acc": dict(zip(classes, test["per_class_acc"])),
+        "confusion_matrix": test["confusion"], "classes": classes, "test_size": test["n"], "split": "test",
+        "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
+        "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
+        "step_seconds": timer.means(), **{f"test_{k}": v for k, v in view_offsets(model, test["azim"], test["elev"]).items()},
         "history": history, "config": cfg_dict,
     }
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_results(run_dir, metrics)
     print(f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val {best_acc:.4f} "
           f"at epoch {best_epoch + 1})")
     return metrics

@@ -27,14 +27,15 @@ the camera over the pole at azimuth + 180.
 Distance: constant ``distance`` unless ``learn_distance``, then
 ``distance + distance_bound * tanh(extra M outputs)``.
 
-Initialisation: the last linear layer's weights and bias are zero, so at initialisation
+Initialisation (default ``init_std=0``): the last linear layer's weights and bias are zero, so at initialisation
 ``u == u0`` exactly. Gradients still flow because ``tanh'(0) = 1``: on the first step the loss
 gradient reaches the last layer (its inputs are non-zero), and once that layer is non-zero it
 reaches the hidden layers and the point encoder too (at the very first step their gradient is
 exactly zero, since the zero weights block it).
 
 ``u_bound`` (buffer ``[3]``: azimuth, elevation in degrees, distance in world units; the
-distance bound is 0 when the distance is not learned) is the one place the bounds are defined.
+distance bound is 0 when the distance is not learned) is the one place the bounds are defined;
+``azim_bound`` / ``elev_bound`` override the paper's values for ablations.
 """
 from __future__ import annotations
 
@@ -50,14 +51,19 @@ from mvtn_exp.selectors.fixed import ViewSelector, Views
 VARIANTS = ("direct", "circular", "spherical")
 
 
-def regressor(in_features: int, features: int, views: int, outputs: int) -> nn.Sequential:
-    """The MVTN MLP ``[B, in_features] -> [B, outputs]``: ``-> b -> b -> 5M -> outputs``."""
+def regressor(in_features: int, features: int, views: int, outputs: int, init_std: float = 0.0) -> nn.Sequential:
+    """The MVTN MLP ``[B, in_features] -> [B, outputs]``: ``-> b -> b -> 5M -> outputs``.
+
+    The last layer's bias is zero and its weights are ``N(0, init_std^2)`` (0: exactly u0 at start)."""
     widths = (in_features, features, features, 5 * views)
     layers: list[nn.Module] = []
     for cin, cout in zip(widths[:-1], widths[1:]):
         layers += [nn.Linear(cin, cout), nn.BatchNorm1d(cout), nn.ReLU(inplace=True)]
     last = nn.Linear(widths[-1], outputs)
-    nn.init.zeros_(last.weight)
+    if init_std > 0:
+        nn.init.normal_(last.weight, std=float(init_std))
+    else:
+        nn.init.zeros_(last.weight)
     nn.init.zeros_(last.bias)
     return nn.Sequential(*layers, last)
 
@@ -79,7 +85,8 @@ class MVTNSelector(ViewSelector):
     def __init__(self, views: int, variant: str, point_encoder: Union[str, nn.Module] = "pointnet",
                  features: int = 40, distance: float = 2.2, learn_distance: bool = False,
                  distance_bound: float = 1.0, elevation: float = 30.0,
-                 point_encoder_kwargs: Optional[dict] = None) -> None:
+                 point_encoder_kwargs: Optional[dict] = None, azim_bound: Optional[float] = None,
+                 elev_bound: Optional[float] = None, init_std: float = 0.0) -> None:
         super().__init__(views)
         if variant not in VARIANTS:
             raise ValueError(f"MVTNSelector: unknown variant {variant!r}; allowed: {', '.join(VARIANTS)}")
@@ -97,15 +104,21 @@ class MVTNSelector(ViewSelector):
             azim0, elev0, _ = layouts.spherical(M, 1, distance=distance)
         self.register_buffer("azim0", azim0[0], persistent=False)  # [M] degrees
         self.register_buffer("elev0", elev0[0], persistent=False)  # [M] degrees
-        azim_bound = 180.0 if variant == "direct" else 180.0 / M
+        if azim_bound is None:
+            azim_bound = 180.0 if variant == "direct" else 180.0 / M
+        elev_bound = 90.0 if elev_bound is None else elev_bound
+        if not (azim_bound >= 0 and elev_bound >= 0 and init_std >= 0):
+            raise ValueError(f"MVTNSelector: need azim_bound, elev_bound, init_std >= 0 "
+                             f"(got {azim_bound}, {elev_bound}, {init_std})")
         dist_bound = float(distance_bound) if self.learn_distance else 0.0
-        self.register_buffer("u_bound", torch.tensor([azim_bound, 90.0, dist_bound]), persistent=False)
+        self.register_buffer("u_bound", torch.tensor([float(azim_bound), float(elev_bound), dist_bound]),
+                             persistent=False)
 
         if isinstance(point_encoder, nn.Module):
             self.encoder = point_encoder
         else:
             self.encoder = build_point_encoder(point_encoder, out_features=b, **(point_encoder_kwargs or {}))
-        self.regressor = regressor(b + 2 * M, b, M, (3 if self.learn_distance else 2) * M)
+        self.regressor = regressor(b + 2 * M, b, M, (3 if self.learn_distance else 2) * M, init_std)
 
     def initial_views(self, batch: int = 1) -> Views:
         """u0: ``(azim, elev, dist)``, each ``[batch, M]``."""

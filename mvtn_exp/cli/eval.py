@@ -1,0 +1,41 @@
+"""``mvtn-eval ckpt=PATH [split=test] [device=cuda]``: evaluate a checkpoint written by ``mvtn-train``.
+
+The model is rebuilt from the config stored in the checkpoint. Writes metrics.json, confusion.json
+and confusion.png under ``outputs/eval/runs/<time>``; the last printed line is metrics.json's path.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf
+
+from ..data.shapes import ShapeError
+from ..engine.checkpoint import CheckpointMismatch
+from ..engine.evaluation import evaluate_checkpoint
+from ..schema import EvalConfig, register_configs
+from .common import check_overrides
+
+register_configs()
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="eval")
+def _app(cfg) -> None:
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        evaluate_checkpoint(OmegaConf.to_object(cfg), run_dir)
+    except (CheckpointMismatch, FileNotFoundError, NotImplementedError, ShapeError, ValueError) as exc:
+        print(f"mvtn-eval: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    print(run_dir / "metrics.json")
+
+
+def main() -> None:
+    check_overrides("mvtn-eval", "eval", EvalConfig, sys.argv[1:], validate=EvalConfig.validate)
+    _app()
+
+
+if __name__ == "__main__":
+    main()

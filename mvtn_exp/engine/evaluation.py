@@ -1,0 +1,69 @@
+"""``evaluate_checkpoint``: rebuild MVTN from the config stored in a checkpoint and evaluate one split."""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from ..data.datasets import build_dataset
+from ..model import build_mvtn
+from ..schema import EvalConfig, TrainConfig
+from ..tasks import classification
+from . import checkpoint
+from .trainer import as_config, config_dict, eval_loader, view_offsets, write_results
+
+
+def config_from_checkpoint(state: dict, path) -> TrainConfig:
+    """The checkpoint's training config, checked against this version's schema."""
+    try:
+        return as_config(state["config"])
+    except Exception as exc:
+        raise checkpoint.CheckpointMismatch(f"checkpoint {str(path)!r}: its stored config does not fit this "
+                                            f"version's schema ({str(exc).splitlines()[0]})") from exc
+
+
+def load_model(cfg: TrainConfig, state: dict, num_classes: int, path, device):
+    model = build_mvtn(cfg, num_classes=num_classes).to(device)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        detail = " ".join(str(exc).split())[:400]
+        raise checkpoint.CheckpointMismatch(f"checkpoint {str(path)!r}: weights do not fit the model its config "
+                                            f"builds ({detail})") from exc
+    return model
+
+
+def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
+    """Evaluate ``ecfg.ckpt`` on ``ecfg.split``; writes metrics.json / confusion.{json,png} into ``run_dir``."""
+    ecfg.validate()
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    state = checkpoint.load(ecfg.ckpt)
+    cfg = config_from_checkpoint(state, ecfg.ckpt)
+    if ecfg.device is not None:
+        cfg.device = ecfg.device
+    if ecfg.batch_size is not None:
+        cfg.batch_size = ecfg.batch_size
+    if ecfg.root is not None:
+        cfg.dataset = replace(cfg.dataset, root=ecfg.root)
+    cfg.logger.progress = ecfg.progress
+    device = torch.device(cfg.device)
+
+    dataset = build_dataset(cfg.dataset, ecfg.split, progress=ecfg.progress)
+    classes = list(dataset.classes)
+    if state.get("classes") is not None and list(state["classes"]) != classes:
+        raise checkpoint.CheckpointMismatch(f"checkpoint {ecfg.ckpt!r} was trained on classes {state['classes']} "
+                                            f"but dataset {cfg.dataset.name} at {cfg.dataset.root} has {classes}")
+    model = load_model(cfg, state, len(classes), ecfg.ckpt, device)
+    res = classification.evaluate(model, eval_loader(cfg, dataset), len(classes), desc=ecfg.split,
+                                  progress=ecfg.progress)
+    offsets = view_offsets(model, res["azim"], res["elev"])
+    metrics = {"test_acc": res["acc"], "test_mean_class_acc": res["mean_class_acc"], "test_loss": res["loss"],
+               "test_per_class_acc": dict(zip(classes, res["per_class_acc"])), "confusion_matrix": res["confusion"],
+               "classes": classes, "test_size": res["n"], "split": ecfg.split, "ckpt": str(ecfg.ckpt),
+               "ckpt_epoch": int(state.get("epoch", -1)) + 1, **{f"test_{k}": v for k, v in offsets.items()},
+               "config": config_dict(cfg)}
+    write_results(run_dir, metrics)
+    print(f"{ecfg.split} accuracy {res['acc']:.4f} (mean per-class {res['mean_class_acc']:.4f}, n={res['n']})")
+    return metrics

@@ -1,0 +1,113 @@
+"""Sweep summaries: after ``mvtn-train -m ...``, one table of every job's metrics (``summary.csv``,
+``summary.md``) and one of mean +- std over seeds per setting, in the sweep folder."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+from hydra.experimental.callback import Callback
+
+COLUMNS = ("test_acc", "test_mean_class_acc", "best_val_acc", "mean_epoch_seconds", "test_view_offset_azim",
+           "test_view_offset_elev")
+STATUS_FILE = "status.json"  # written by a job that failed (diverged, bad input)
+
+
+def _overrides(job_dir: Path) -> list[str]:
+    path = job_dir / ".hydra" / "overrides.yaml"
+    if path.is_file():
+        import yaml
+
+        return [str(o) for o in (yaml.safe_load(path.read_text()) or [])]
+    return [job_dir.name]
+
+
+def collect(sweep_dir) -> list[dict]:
+    """One row per job folder under ``sweep_dir``: its overrides, status and metrics."""
+    rows = []
+    for job in sorted(p for p in Path(sweep_dir).iterdir() if p.is_dir() and not p.name.startswith(".")):
+        if not (job / ".hydra").is_dir():
+            continue
+        row = {"job": job.name, "overrides": _overrides(job)}
+        if (job / "metrics.json").is_file():
+            m = json.loads((job / "metrics.json").read_text())
+            row.update(status="ok", **{k: m.get(k) for k in COLUMNS})
+        elif (job / STATUS_FILE).is_file():
+            row.update(json.loads((job / STATUS_FILE).read_text()))
+        else:
+            row["status"] = "incomplete"
+        rows.append(row)
+    return rows
+
+
+# overrides that do not define a setting: the seed (aggregated over), paths and logging
+NOT_A_SETTING = ("seed", "ckpt_path", "device", "dataset.root", "dataset.num_workers", "paths.", "logger.", "hydra.")
+
+
+def _setting(overrides: list[str]) -> str:
+    """The overrides that define a setting: jobs that differ only in ``seed`` are one setting."""
+    keys = [o for o in overrides if not o.split("=", 1)[0].lstrip("+~").startswith(NOT_A_SETTING)]
+    return ",".join(keys) or "(defaults)"
+
+
+def aggregate(rows: list[dict]) -> list[dict]:
+    """Mean and sample std (n-1) of each metric over the successful jobs of each setting."""
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(_setting(r["overrides"]), []).append(r)
+    out = []
+    for setting, members in groups.items():
+        ok = [r for r in members if r.get("status") == "ok"]
+        agg = {"setting": setting, "runs": len(ok), "failed": len(members) - len(ok)}
+        for key in COLUMNS:
+            vals = [float(r[key]) for r in ok if r.get(key) is not None]
+            mean = sum(vals) / len(vals) if vals else float("nan")
+            std = math.sqrt(sum((v - mean) ** 2 for v in vals) / (len(vals) - 1)) if len(vals) > 1 else 0.0
+            agg[key] = mean
+            agg[f"{key}_std"] = std
+        out.append(agg)
+    return out
+
+
+def _fmt(v) -> str:
+    return f"{v:.4f}" if isinstance(v, float) else str(v)
+
+
+def write_summary(sweep_dir) -> tuple[Path, Path]:
+    """Write ``summary.csv`` (one row per job) and ``summary.md`` (per job and mean +- std per
+    setting) into ``sweep_dir``; returns their paths."""
+    sweep_dir = Path(sweep_dir)
+    rows = collect(sweep_dir)
+    csv_path, md_path = sweep_dir / "summary.csv", sweep_dir / "summary.md"
+    fields = ["job", "status", *COLUMNS, "error"]
+    with open(csv_path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r.get(k, "") for k in fields})
+    aggs = aggregate(rows)
+    lines = ["# Sweep summary", "", f"{len(rows)} jobs in `{sweep_dir}`.", "",
+             "## Mean +- std over seeds (sample std)", "",
+             "| setting | runs | failed | test acc | mean class acc | best val acc | s/epoch | |u-u0| azim | |u-u0| elev |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for a in aggs:
+        cells = [f"{a[k]:.3f} ± {a[k + '_std']:.3f}" for k in COLUMNS]
+        lines.append(f"| {a['setting']} | {a['runs']} | {a['failed']} | " + " | ".join(cells) + " |")
+    lines += ["", "## Jobs", "", "| job | status | " + " | ".join(COLUMNS) + " |",
+              "|---|---|" + "---|" * len(COLUMNS)]
+    for r in rows:
+        lines.append(f"| {r['job']} | {r.get('status')} | " + " | ".join(_fmt(r.get(k, '')) for k in COLUMNS) + " |")
+    md_path.write_text("\n".join(lines) + "\n")
+    return csv_path, md_path
+
+
+class SweepSummary(Callback):
+    """Hydra callback: write the sweep summary when a multirun ends."""
+
+    def on_multirun_end(self, config, **kwargs) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        if sweep_dir.is_dir():
+            _, md = write_summary(sweep_dir)
+            print(md.read_text())
+            print(md)

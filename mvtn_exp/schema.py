@@ -1,0 +1,308 @@
+"""Config schemas: one dataclass per config group, the top-level ``TrainConfig`` / ``EvalConfig``.
+
+Hydra composes ``mvtn_exp/conf/train.yaml`` (group files under ``conf/<group>/``) on top of these
+schemas, registered in the ConfigStore by ``register_configs``: an unknown key or a wrong type
+fails at compose time. ``validate`` methods check values (names, ranges) and raise ``ValueError``
+naming the key and the allowed values. Angles are degrees; the world is Y-up.
+
+Group -> schema: dataset -> DatasetConfig, renderer -> RendererConfig (``render/config.py``),
+selector -> SelectorConfig, point_encoder -> PointEncoderConfig, backbone -> BackboneConfig,
+mvnet -> MVNetConfig, task -> TaskConfig, optim -> OptimConfig, logger -> LoggerConfig,
+paths -> PathsConfig.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from .data.synthetic import ROTATIONS
+from .models.backbones import BACKBONES
+from .models.multiview import MULTIVIEW, POOLS
+from .models.point_encoders import POINT_ENCODERS
+from .render.config import RendererConfig
+from .selectors import SELECTORS
+
+DATASETS = ("synthetic", "modelnet40", "scanobjectnn", "shapenet")
+SHAPES = ("mesh", "points")
+SELECTOR_NAMES = tuple(SELECTORS)
+POINT_ENCODER_NAMES = tuple(POINT_ENCODERS)
+BACKBONE_NAMES = tuple(BACKBONES)
+MVNET_NAMES = tuple(MULTIVIEW)
+TASKS = ("classification",)
+OPTIMIZERS = ("adamw",)
+SCHEDULES = ("cosine", "step")
+
+
+def one_of(key: str, value: Any, allowed) -> None:
+    if value not in allowed:
+        raise ValueError(f"{key}={value!r}: expected one of {', '.join(map(str, allowed))}")
+
+
+def at_least(key: str, value, low, strict: bool = False) -> None:
+    bad = value <= low if strict else value < low
+    if value is None or bad:
+        raise ValueError(f"{key}={value!r}: must be {'>' if strict else '>='} {low}")
+
+
+@dataclass
+class DatasetConfig:
+    """Which shapes. ``root``: the dataset folder (synthetic: its cache folder).
+
+    ``shape``: render meshes or point clouds; ``num_points``: points per shape fed to G (and
+    rendered when ``shape=points``). ``rotate``: none | y (about the vertical axis) | so3.
+    ``seed``: the data seed (synthetic geometry), separate from the training seed.
+    ``num_per_class``: synthetic shapes per class for (train, val, test).
+    ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``val_fraction``: share of
+    the official train split held out for model selection when a dataset has no val split.
+    """
+
+    name: str = "synthetic"
+    root: str = "${paths.cache_dir}/synthetic"
+    shape: str = "mesh"
+    num_points: int = 1024
+    rotate: str = "none"
+    seed: int = 0
+    num_per_class: list[int] = field(default_factory=lambda: [24, 6, 12])
+    max_faces: int = 2000
+    variant: str = ""
+    val_fraction: float = 0.1
+    num_workers: int = 0
+
+    def validate(self) -> "DatasetConfig":
+        one_of("dataset.name", self.name, DATASETS)
+        one_of("dataset.shape", self.shape, SHAPES)
+        one_of("dataset.rotate", self.rotate, ROTATIONS)
+        at_least("dataset.num_points", self.num_points, 1)
+        at_least("dataset.seed", self.seed, 0)
+        at_least("dataset.max_faces", self.max_faces, 1)
+        at_least("dataset.num_workers", self.num_workers, 0)
+        if len(self.num_per_class) != 3 or min(self.num_per_class) < 1:
+            raise ValueError(f"dataset.num_per_class={list(self.num_per_class)}: expected 3 counts >= 1 "
+                             "(train, val, test)")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ValueError(f"dataset.val_fraction={self.val_fraction!r}: must be in [0, 1)")
+        return self
+
+
+@dataclass
+class SelectorConfig:
+    """The view selector G (``selectors/``). Fixed: circular | spherical | random; learned:
+    mvtn_direct | mvtn_circular | mvtn_spherical (u = u0 + u_bound * tanh(G(S, u0))).
+
+    ``distance``: camera distance; ``elevation``: elevation of the circular layout (degrees).
+    ``azim_bound`` / ``elev_bound``: learned offsets' bounds in degrees (null: 180/M azimuth for
+    the offset variants and 180 for direct; 90 elevation). ``learn_distance`` adds a distance
+    offset bounded by ``distance_bound``. ``init_std``: std of G's last layer at initialisation
+    (0: G starts exactly at u0).
+    """
+
+    name: str = "mvtn_spherical"
+    distance: float = 2.2
+    elevation: float = 30.0
+    azim_bound: Optional[float] = None
+    elev_bound: Optional[float] = None
+    learn_distance: bool = False
+    distance_bound: float = 1.0
+    init_std: float = 0.0
+
+    @property
+    def learned(self) -> bool:
+        return self.name.startswith("mvtn_")
+
+    def validate(self) -> "SelectorConfig":
+        one_of("selector", self.name, SELECTOR_NAMES)
+        at_least("selector.distance", self.distance, 0.0, strict=True)
+        for key in ("azim_bound", "elev_bound"):
+            if getattr(self, key) is not None:
+                at_least(f"selector.{key}", getattr(self, key), 0.0)
+        at_least("selector.init_std", self.init_std, 0.0)
+        if self.learn_distance:
+            at_least("selector.distance_bound", self.distance_bound, 0.0, strict=True)
+        return self
+
+
+@dataclass
+class PointEncoderConfig:
+    """G's point encoder: ``[B, N, 3] -> [B, features]`` (b = 40 in the paper)."""
+
+    name: str = "pointnet"
+    features: int = 40
+    use_tnet: bool = False
+
+    def validate(self) -> "PointEncoderConfig":
+        one_of("point_encoder", self.name, POINT_ENCODER_NAMES)
+        at_least("point_encoder.features", self.features, 1)
+        return self
+
+
+@dataclass
+class BackboneConfig:
+    """The 2D backbone shared over views. ``weights``: a local torchvision-style state_dict file."""
+
+    name: str = "small_cnn"
+    weights: Optional[str] = None
+
+    def validate(self) -> "BackboneConfig":
+        one_of("backbone", self.name, BACKBONE_NAMES)
+        return self
+
+
+@dataclass
+class MVNetConfig:
+    """The multi-view network C: mvcnn (pool features over views) | late_fusion (pool logits)."""
+
+    name: str = "mvcnn"
+    pool: str = "max"
+    dropout: float = 0.0
+
+    def validate(self) -> "MVNetConfig":
+        one_of("mvnet", self.name, MVNET_NAMES)
+        one_of("mvnet.pool", self.pool, POOLS)
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"mvnet.dropout={self.dropout!r}: must be in [0, 1)")
+        return self
+
+
+@dataclass
+class TaskConfig:
+    """The task head and its loss. ``classification``: cross-entropy over the dataset's classes."""
+
+    name: str = "classification"
+    label_smoothing: float = 0.0
+
+    def validate(self) -> "TaskConfig":
+        one_of("task", self.name, TASKS)
+        if not 0.0 <= self.label_smoothing < 1.0:
+            raise ValueError(f"task.label_smoothing={self.label_smoothing!r}: must be in [0, 1)")
+        return self
+
+
+@dataclass
+class OptimConfig:
+    """AdamW with two parameter groups: C (``lr``) and G (``lr_selector``); G's gradient L2 norm
+    is clipped to ``clip_selector`` before the step. Schedule per epoch: cosine to 0 or step
+    (x ``step_gamma`` every ``step_size`` epochs)."""
+
+    name: str = "adamw"
+    lr: float = 1e-3
+    lr_selector: float = 1e-4
+    weight_decay: float = 0.01
+    clip_selector: float = 30.0
+    schedule: str = "cosine"
+    step_size: int = 30
+    step_gamma: float = 0.1
+
+    def validate(self) -> "OptimConfig":
+        one_of("optim", self.name, OPTIMIZERS)
+        one_of("optim.schedule", self.schedule, SCHEDULES)
+        at_least("optim.lr", self.lr, 0.0, strict=True)
+        at_least("optim.lr_selector", self.lr_selector, 0.0)
+        at_least("optim.weight_decay", self.weight_decay, 0.0)
+        at_least("optim.clip_selector", self.clip_selector, 0.0, strict=True)
+        at_least("optim.step_size", self.step_size, 1)
+        return self
+
+
+@dataclass
+class LoggerConfig:
+    """Progress bars and TensorBoard (``<run>/tb``): scalars every ``log_every`` steps, a view grid
+    and view histograms every epoch."""
+
+    tensorboard: bool = True
+    progress: bool = True
+    log_every: int = 10
+    images: bool = True
+
+    def validate(self) -> "LoggerConfig":
+        at_least("logger.log_every", self.log_every, 1)
+        return self
+
+
+@dataclass
+class PathsConfig:
+    """Where data is read from and where outputs and caches go (relative to the working dir)."""
+
+    data_dir: str = "data"
+    output_dir: str = "outputs"
+    cache_dir: str = "${paths.output_dir}/cache"
+
+
+@dataclass
+class TrainConfig:
+    """``mvtn-train``. Top-level keys everyone reaches for; the rest in the groups.
+
+    ``views``: M; ``image_size``: rendered H = W (sets ``renderer.image_size``); ``seed``: the
+    training seed (init, order, augmentation); ``ckpt_path``: resume from this checkpoint.
+    """
+
+    views: int = 4
+    image_size: int = 64
+    epochs: int = 8
+    batch_size: int = 16
+    seed: int = 0
+    device: str = "cpu"
+    ckpt_path: Optional[str] = None
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    # renderer.image_size follows the top-level image_size (an interpolation, resolved at compose time)
+    renderer: RendererConfig = field(default_factory=lambda: RendererConfig(image_size="${image_size}"))  # type: ignore[arg-type]
+    selector: SelectorConfig = field(default_factory=SelectorConfig)
+    point_encoder: PointEncoderConfig = field(default_factory=PointEncoderConfig)
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    mvnet: MVNetConfig = field(default_factory=MVNetConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    paths: PathsConfig = field(default_factory=PathsConfig)
+
+    def validate(self) -> "TrainConfig":
+        for key in ("views", "image_size", "epochs", "batch_size"):
+            at_least(key, getattr(self, key), 1)
+        at_least("seed", self.seed, 0)
+        if not (self.device == "cpu" or self.device.startswith("cuda")):
+            raise ValueError(f"device={self.device!r}: expected cpu, cuda or cuda:N")
+        for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
+                     self.optim, self.logger):
+            part.validate()
+        if self.renderer.image_size != self.image_size:
+            raise ValueError(f"renderer.image_size={self.renderer.image_size} differs from image_size={self.image_size}: "
+                             "set the top-level image_size")
+        self.renderer.validate()
+        return self
+
+
+@dataclass
+class EvalConfig:
+    """``mvtn-eval ckpt=PATH``: rebuild the model from the checkpoint's config, evaluate ``split``.
+
+    ``device`` / ``batch_size``: null keeps the checkpoint's values. ``root``: override the
+    dataset root stored in the checkpoint (data moved)."""
+
+    ckpt: Optional[str] = None
+    split: str = "test"
+    device: Optional[str] = None
+    batch_size: Optional[int] = None
+    root: Optional[str] = None
+    progress: bool = True
+
+    def validate(self) -> "EvalConfig":
+        if not self.ckpt:
+            raise ValueError("ckpt: missing; pass ckpt=PATH to a best.pt / last.pt written by mvtn-train")
+        one_of("split", self.split, ("train", "val", "test"))
+        if self.batch_size is not None:
+            at_least("batch_size", self.batch_size, 1)
+        return self
+
+
+GROUPS = {"dataset": DatasetConfig, "renderer": RendererConfig, "selector": SelectorConfig,
+          "point_encoder": PointEncoderConfig, "backbone": BackboneConfig, "mvnet": MVNetConfig,
+          "task": TaskConfig, "optim": OptimConfig, "logger": LoggerConfig, "paths": PathsConfig}
+
+
+def register_configs() -> None:
+    """Store ``train_schema`` and ``eval_schema`` in Hydra's ConfigStore. The group files are
+    merged into the typed fields of ``TrainConfig``, so each is checked against its group's schema."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(name="train_schema", node=TrainConfig)
+    cs.store(name="eval_schema", node=EvalConfig)

@@ -1,0 +1,52 @@
+"""Classification: the loss, and evaluation (overall accuracy, mean per-class accuracy, confusion matrix)."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from ..schema import TaskConfig
+
+
+def loss_fn(cfg: TaskConfig):
+    """``(logits [B, K], labels [B]) -> scalar`` cross-entropy (with ``label_smoothing``)."""
+    return nn.CrossEntropyLoss(label_smoothing=cfg.label_smoothing)
+
+
+def summarize(confusion: Tensor) -> dict:
+    """``confusion [K, K]`` (rows: true, columns: predicted) -> acc, mean per-class acc (over the
+    classes present), per-class acc (None for an absent class) and n."""
+    conf = confusion.long()
+    total = int(conf.sum())
+    support = conf.sum(1)
+    per_class = conf.diag().double() / support.clamp(min=1).double()
+    present = support > 0
+    return {"acc": float(conf.diag().sum()) / max(total, 1),
+            "mean_class_acc": float(per_class[present].mean()) if bool(present.any()) else 0.0,
+            "per_class_acc": [float(a) if bool(p) else None for a, p in zip(per_class, present)],
+            "n": total}
+
+
+@torch.no_grad()
+def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool = True) -> dict:
+    """Eval mode (renderer: camera light, white object): loss, ``summarize`` metrics, the confusion
+    matrix as nested lists, and the predicted views ``azim`` / ``elev`` ``[N, M]`` (degrees, CPU)."""
+    model.eval()
+    conf = torch.zeros(num_classes, num_classes, dtype=torch.long)
+    loss_sum, azim, elev = 0.0, [], []
+    first_images = None
+    for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
+        labels = batch["labels"].to(model.device)
+        out = model(batch)
+        loss_sum += float(nn.functional.cross_entropy(out["logits"], labels, reduction="sum"))
+        pred = out["logits"].argmax(1).cpu()
+        conf.index_put_((batch["labels"], pred), torch.ones_like(pred), accumulate=True)
+        azim.append(out["azim"].cpu())
+        elev.append(out["elev"].cpu())
+        if first_images is None:
+            first_images = out["images"].cpu()
+    result = summarize(conf)
+    result.update(loss=loss_sum / max(result["n"], 1), confusion=conf.tolist(),
+                  azim=torch.cat(azim) if azim else torch.zeros(0), elev=torch.cat(elev) if elev else torch.zeros(0),
+                  images=first_images)
+    return result
