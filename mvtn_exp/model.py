@@ -1,6 +1,7 @@
 """The assembled MVTN: selector G (points -> views), renderer R (shape, views -> images), multi-view net C."""
 from __future__ import annotations
 
+import torch
 from torch import nn
 
 from .data.shapes import PointClouds
@@ -73,7 +74,13 @@ def build_selector_from(cfg: TrainConfig) -> nn.Module:
 
 
 def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
-    """G, R and C as ``cfg`` (a validated ``TrainConfig``) describes them, for ``num_classes`` classes."""
+    """G, R and C as ``cfg`` (a validated ``TrainConfig``) describes them, for ``num_classes`` classes.
+
+    C is built first and G's initialisation draws from a forked RNG, so that at the same seed C's
+    initial weights and every later random draw (order, light, colour) are the same whichever
+    selector is chosen: fixed and learned views are compared on equal terms."""
     mvnet = build_multiview(cfg.mvnet.name, cfg.backbone.name, num_classes, weights=cfg.backbone.weights,
                             pool=cfg.mvnet.pool, dropout=cfg.mvnet.dropout)
-    return MVTN(build_selector_from(cfg), MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape)
+    with torch.random.fork_rng(devices=[]):
+        selector = build_selector_from(cfg)
+    return MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape)

@@ -62,7 +62,7 @@ class DatasetConfig:
     num_points: int = 1024
     rotate: str = "none"
     seed: int = 0
-    num_per_class: list[int] = field(default_factory=lambda: [24, 6, 12])
+    num_per_class: list[int] = field(default_factory=lambda: [24, 12, 24])
     max_faces: int = 2000
     variant: str = ""
     val_fraction: float = 0.1
@@ -185,7 +185,7 @@ class OptimConfig:
 
     name: str = "adamw"
     lr: float = 1e-3
-    lr_selector: float = 1e-4
+    lr_selector: float = 1e-3
     weight_decay: float = 0.01
     clip_selector: float = 30.0
     schedule: str = "cosine"
@@ -243,8 +243,10 @@ class TrainConfig:
     device: str = "cpu"
     ckpt_path: Optional[str] = None
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
-    # renderer.image_size follows the top-level image_size (an interpolation, resolved at compose time)
-    renderer: RendererConfig = field(default_factory=lambda: RendererConfig(image_size="${image_size}"))  # type: ignore[arg-type]
+    # renderer.image_size follows the top-level image_size (an interpolation, resolved at compose time);
+    # training defaults to soft smooth rendering (conf/renderer/soft.yaml: camera gradients for G)
+    renderer: RendererConfig = field(default_factory=lambda: RendererConfig(
+        image_size="${image_size}", mode="soft", shading="smooth"))  # type: ignore[arg-type]
     selector: SelectorConfig = field(default_factory=SelectorConfig)
     point_encoder: PointEncoderConfig = field(default_factory=PointEncoderConfig)
     backbone: BackboneConfig = field(default_factory=BackboneConfig)

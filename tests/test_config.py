@@ -94,3 +94,10 @@ def test_sweep_variants_are_linear():
     v = sweep_variants(["selector=a,b,c", "views=1,4", "seed=0"])
     assert v[0] == ["selector=a", "views=1", "seed=0"] and len(v) == 1 + 2 + 1
     assert ["selector=c", "views=1", "seed=0"] in v and ["selector=a", "views=4", "seed=0"] in v
+
+
+def test_schema_defaults_equal_the_default_yaml():
+    """``train(dict)`` from Python and ``mvtn-train`` with no overrides run the same experiment."""
+    from mvtn_exp.engine.trainer import as_config
+
+    assert _compose([]) == as_config({})

@@ -183,7 +183,7 @@ def _cli(args, cwd, module="train"):
 
 def _tiny_args(cache) -> list[str]:
     return ["epochs=1", "views=2", "image_size=32", "dataset.num_per_class=[4,2,2]", "batch_size=8",
-            f"dataset.root={cache}", "logger.progress=false"]
+            f"dataset.root={cache}", "logger.progress=false", "logger.log_every=1"]
 
 
 def test_cli_train_then_eval(cache, tmp_path):
@@ -195,6 +195,12 @@ def test_cli_train_then_eval(cache, tmp_path):
     last = r.stdout.strip().splitlines()[-1]
     assert Path(last) == run / "metrics.json" and Path(last).is_file()
     assert list((run / "tb").glob("events.out.tfevents.*")), "no TensorBoard event file"
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tags = EventAccumulator(str(run / "tb")).Reload().Tags()
+    for tag in ("train/loss", "val/acc", "lr/mvnet", "lr/selector", "grad_norm/selector", "views/offset_azim"):
+        assert tag in tags["scalars"], (tag, tags["scalars"])
+    assert "views/val" in tags["images"] and {"views/azim", "views/elev"} <= set(tags["histograms"])
     trained = json.loads(Path(last).read_text())
 
     out = tmp_path / "eval"

@@ -217,6 +217,10 @@ def train(cfg, run_dir) -> dict:
     run_dir.mkdir(parents=True, exist_ok=True)
     device = torch.device(cfg.device)
     cfg_dict = config_dict(cfg)
+    if cfg.selector.learned and cfg.dataset.shape == "mesh" and cfg.renderer.mode == "hard" \
+            and cfg.renderer.shading != "smooth":
+        log.warning("learned selector with renderer.mode=hard and flat shading: images are piecewise constant in "
+                    "the camera, so G gets almost no useful gradient (measured); use renderer=soft")
 
     resume = None
     if cfg.ckpt_path:

@@ -52,19 +52,27 @@ def coverage(dist: torch.Tensor, valid: torch.Tensor, sigma: float) -> torch.Ten
 
 
 def softmax_blend(colors, dist, zbuf, valid, zfar, znear, background, *, sigma: float, gamma: float):
-    """SoftRas-style blend in log space.
+    """SoftRas-style depth blend of the K slots, composited over the background by soft coverage.
 
     colors ``[P, K, 3]``; dist, zbuf, valid ``[P, K]``; zfar, znear ``[P]`` per-pixel scene depth
-    range; background ``[3]``. Weight of slot k: ``p_k exp(zinv_k / gamma)`` with
-    ``zinv = (zfar - z) / (zfar - znear)``; the background sits at zinv = 0.
+    range; background ``[3]``. Surface colour: softmax over the slots of ``p_k exp(zinv_k / gamma)``
+    (log space) with ``p_k = sigmoid(-d_k / sigma)`` and ``zinv = (zfar - z) / (zfar - znear)``.
+    Image: ``alpha * surface + (1 - alpha) * background`` with ``alpha = 1 - prod_k (1 - p_k)``.
+
+    Why not SoftRas's background slot (weight ``exp(eps / gamma)``): at a small gamma it has no
+    weight next to any face (measured: exactly 0 at every partly covered edge pixel with
+    gamma = 1e-4), so colour images kept hard edges, the blur lived only in ``alpha``, and the
+    camera gradient of shaded images did not match finite differences (cosine ~0.1-0.3). With the
+    coverage composite, edges fade into the background and carry the silhouette's gradient.
     """
     zinv = (zfar[:, None] - zbuf) / (zfar - znear).clamp(min=1e-12)[:, None]
     logit = F.logsigmoid(-dist / sigma) + zinv / gamma
     logit = torch.where(valid, logit, torch.full_like(logit, NEG))
-    logit = torch.cat([logit, torch.zeros_like(logit[:, :1])], 1)
     w = torch.softmax(logit, 1)
-    rgb = (w[:, :-1, None] * colors).sum(1) + w[:, -1:] * background
-    return rgb.clamp(0, 1), coverage(dist, valid, sigma)  # clamp: rounding can exceed 1 by an ulp
+    surface = (w[:, :, None] * colors).sum(1)
+    alpha = coverage(dist, valid, sigma)
+    rgb = alpha[:, None] * surface + (1 - alpha[:, None]) * background
+    return rgb.clamp(0, 1), alpha  # clamp: rounding can exceed 1 by an ulp
 
 
 def silhouette_blend(dist, valid, *, sigma: float):
