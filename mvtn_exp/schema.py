@@ -51,7 +51,10 @@ class DatasetConfig:
     ``shape``: render meshes or point clouds; ``num_points``: points per shape fed to G (and
     rendered when ``shape=points``). ``rotate``: none | y (about the vertical axis) | so3.
     ``seed``: the data seed (synthetic geometry), separate from the training seed.
-    ``num_per_class``: synthetic shapes per class for (train, val, test).
+    ``num_per_class`` / ``max_faces``: synthetic shapes per class for (train, val, test) and their
+    face budget. ``max_vertices``: real meshes are simplified to about this many vertices (0: never;
+    the paper used 20,000). ``strict``: a broken shape file stops the run instead of being skipped
+    and counted. ``cache_dir``: where preprocessed real datasets are cached.
     ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``val_fraction``: share of
     the official train split held out for model selection when a dataset has no val split.
     """
@@ -64,6 +67,9 @@ class DatasetConfig:
     seed: int = 0
     num_per_class: list[int] = field(default_factory=lambda: [24, 12, 24])
     max_faces: int = 2000
+    max_vertices: int = 20000
+    strict: bool = False
+    cache_dir: str = "${paths.cache_dir}"
     variant: str = ""
     val_fraction: float = 0.1
     num_workers: int = 0
@@ -75,6 +81,7 @@ class DatasetConfig:
         at_least("dataset.num_points", self.num_points, 1)
         at_least("dataset.seed", self.seed, 0)
         at_least("dataset.max_faces", self.max_faces, 1)
+        at_least("dataset.max_vertices", self.max_vertices, 0)
         at_least("dataset.num_workers", self.num_workers, 0)
         if len(self.num_per_class) != 3 or min(self.num_per_class) < 1:
             raise ValueError(f"dataset.num_per_class={list(self.num_per_class)}: expected 3 counts >= 1 "

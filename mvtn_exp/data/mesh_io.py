@@ -17,6 +17,10 @@ class ShapeFileError(ValueError):
     """A shape file that cannot be read; the message names the file and what was expected."""
 
 
+class DatasetNotFound(FileNotFoundError):
+    """A dataset folder is missing or not laid out as expected; the message names both."""
+
+
 def _content_lines(path: Path):
     with open(path, "r", errors="replace") as fh:
         for line in fh:

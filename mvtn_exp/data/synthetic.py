@@ -22,27 +22,20 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
-import tempfile
-import warnings
 import zlib
 from pathlib import Path
 
 import numpy as np
 import torch
 import trimesh
-from torch.utils.data import Dataset
 
 from .mesh_io import normalize_unit_sphere, zup_to_yup
+from .packed import CacheWarning, PackedShapes, load_npz, sample_surface, save_npz_atomic, validate
 
 GEOMETRY_VERSION = "1"  # bump whenever a builder changes: old caches then miss
 SPLITS = ("train", "val", "test")
 ROTATIONS = ("none", "y", "so3")
 Part = tuple[np.ndarray, np.ndarray]  # (verts [V, 3] float64, faces [F, 3] int64)
-
-
-class CacheWarning(UserWarning):
-    """A cache file was unreadable or written with other settings and is being rebuilt."""
 
 
 # ----------------------------------------------------------------------------- primitives
@@ -283,16 +276,6 @@ def random_rotation(mode: str, r: np.random.Generator) -> np.ndarray:
     raise ValueError(f"synthetic: rotate={mode!r}; expected one of {list(ROTATIONS)}")
 
 
-def sample_surface(v: np.ndarray, f: np.ndarray, n: int, r: np.random.Generator) -> np.ndarray:
-    """``n`` area-weighted uniform samples on the triangles: ``[n, 3]``."""
-    area = _areas(v, f)
-    t = v[f[r.choice(len(f), size=n, p=area / area.sum())]]
-    u, w = r.random(n), r.random(n)
-    flip = u + w > 1  # fold the unit square onto the triangle
-    u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
-    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + w[:, None] * (t[:, 2] - t[:, 0])
-
-
 def _check(name: str, v: np.ndarray, f: np.ndarray) -> None:
     assert len(v) and len(f), f"synthetic shape {name}: empty mesh"
     assert np.isfinite(v).all(), f"synthetic shape {name}: non-finite vertices"
@@ -345,35 +328,12 @@ def generate_split(split: str, count: int, seed: int, rotate: str, max_faces: in
 
 def _validate(a: dict[str, np.ndarray], n: int, num_points: int) -> None:
     """Raise ValueError unless the arrays form ``n`` well-formed shapes (guards against misreads)."""
-    nv, nf = a["verts_per_shape"], a["faces_per_shape"]
-    ok = (len(nv) == len(nf) == len(a["labels"]) == len(a["names"]) == len(a["rotations"]) == n
-          and a["points"].shape == (n, num_points, 3) and a["verts"].shape == (int(nv.sum()), 3)
-          and a["faces"].shape == (int(nf.sum()), 3) and (nv > 0).all() and (nf > 0).all()
-          and np.isfinite(a["verts"]).all() and np.isfinite(a["points"]).all()
-          and ((a["labels"] >= 0) & (a["labels"] < len(CLASSES))).all())
-    if ok:
-        hi = np.repeat(nv, nf)[:, None]
-        ok = bool(((a["faces"] >= 0) & (a["faces"] < hi)).all())
-    if not ok:
+    validate(a, n, num_points, len(CLASSES))
+    if a["rotations"].shape != (n, 3, 3):
         raise ValueError("inconsistent arrays")
 
 
-def _save_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private; give it the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-class SyntheticShapes(Dataset):
+class SyntheticShapes(PackedShapes):
     """The embedded synthetic dataset (one split), as meshes and as fixed surface point samples.
 
     ``num_per_class``: shapes per class for (train, val, test). ``rotate``: ``none``, ``y``
@@ -397,57 +357,23 @@ class SyntheticShapes(Dataset):
             raise ValueError(f"synthetic: num_per_class={num_per_class!r}; expected 3 counts >= 0 (train, val, test)")
         if int(seed) < 0 or int(num_points) < 1 or int(max_faces) < 1:
             raise ValueError(f"synthetic: need seed >= 0, num_points >= 1, max_faces >= 1 (got {seed}, {num_points}, {max_faces})")
-        self.classes = list(CLASSES)
-        self.split, self.as_points = split, bool(as_points)
         count = counts[SPLITS.index(split)]
         # everything that determines this split's content (other splits' counts do not)
-        self.settings = {"version": GEOMETRY_VERSION, "classes": self.classes, "split": split, "count": count,
+        self.settings = {"version": GEOMETRY_VERSION, "classes": list(CLASSES), "split": split, "count": count,
                          "seed": int(seed), "rotate": rotate, "max_faces": int(max_faces), "num_points": int(num_points)}
         key = hashlib.sha1(json.dumps(self.settings, sort_keys=True).encode()).hexdigest()[:16]
         root = Path(root_cache_dir)
         root.mkdir(parents=True, exist_ok=True)
         self.cache_path = root / f"synthetic_{split}_{key}.npz"
-        n = count * len(self.classes)
-        arrays = self._load(n)
+        n = count * len(CLASSES)
+        arrays = load_npz(self.cache_path, self.settings, ARRAYS, lambda a: _validate(a, n, int(num_points)))
         if arrays is None:
             arrays = generate_split(split, count, int(seed), rotate, int(max_faces), int(num_points), progress)
             _validate(arrays, n, int(num_points))
-            _save_atomic(self.cache_path, {**arrays, "settings": np.asarray(json.dumps(self.settings, sort_keys=True))})
-        self._a = arrays
-        self.labels = arrays["labels"]
-        self.names = [str(s) for s in arrays["names"]]
-        self._vo = np.concatenate([[0], np.cumsum(arrays["verts_per_shape"])])
-        self._fo = np.concatenate([[0], np.cumsum(arrays["faces_per_shape"])])
-
-    def _load(self, n: int) -> dict[str, np.ndarray] | None:
-        """The cached arrays, or None (with a CacheWarning when a file was there but unusable)."""
-        path = self.cache_path
-        if not path.exists():
-            return None
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                stored = json.loads(str(z["settings"]))
-                if stored != json.loads(json.dumps(self.settings)):
-                    raise ValueError(f"written with other settings {stored}")
-                arrays = {k: z[k] for k in ARRAYS}
-            _validate(arrays, n, self.settings["num_points"])
-            return arrays
-        except Exception as exc:  # truncated zip, bad CRC, missing key, stale settings, ...
-            warnings.warn(f"synthetic cache {path} is unusable ({type(exc).__name__}: {exc}); rebuilding it",
-                          CacheWarning, stacklevel=3)
-            return None
-
-    def __len__(self) -> int:
-        return len(self.labels)
+            save_npz_atomic(self.cache_path, arrays, self.settings)
+        super().__init__(arrays, CLASSES, split, as_points)
 
     def __getitem__(self, i: int) -> dict:
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"synthetic {self.split}: index {i} out of range for {len(self)} shapes")
-        i = i % len(self)
-        a = self._a
-        item = {"points": torch.from_numpy(a["points"][i].copy()), "label": int(a["labels"][i]),
-                "name": self.names[i], "rotation": torch.from_numpy(a["rotations"][i].copy())}
-        if not self.as_points:
-            item["verts"] = torch.from_numpy(a["verts"][self._vo[i]:self._vo[i + 1]].copy())
-            item["faces"] = torch.from_numpy(a["faces"][self._fo[i]:self._fo[i + 1]].astype(np.int64))
+        item = self.item(i)
+        item["rotation"] = torch.from_numpy(self._a["rotations"][i % len(self)].copy())
         return item

@@ -57,7 +57,12 @@ def config_dict(cfg: TrainConfig) -> dict:
 
 # ----------------------------------------------------------------------------- pieces
 def make_datasets(cfg: TrainConfig) -> dict:
-    return {split: build_dataset(cfg.dataset, split, progress=cfg.logger.progress) for split in SPLITS}
+    datasets = {split: build_dataset(cfg.dataset, split, progress=cfg.logger.progress) for split in SPLITS}
+    for split, ds in datasets.items():
+        if len(ds) == 0:
+            raise ValueError(f"dataset {cfg.dataset.name} at {cfg.dataset.root}: the {split} split is empty"
+                             + (" (raise dataset.val_fraction or add shapes)" if split == "val" else ""))
+    return datasets
 
 
 def eval_loader(cfg: TrainConfig, dataset) -> DataLoader:
