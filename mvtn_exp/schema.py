@@ -38,6 +38,12 @@ def one_of(key: str, value: Any, allowed) -> None:
         raise ValueError(f"{key}={value!r}: expected one of {', '.join(map(str, allowed))}")
 
 
+def fraction(key: str, value: float) -> None:
+    """``value`` in [0, 1)."""
+    if not 0.0 <= value < 1.0:
+        raise ValueError(f"{key}={value!r}: must be in [0, 1)")
+
+
 def at_least(key: str, value, low, strict: bool = False) -> None:
     bad = value <= low if strict else value < low
     if value is None or bad:
@@ -86,8 +92,7 @@ class DatasetConfig:
         if len(self.num_per_class) != 3 or min(self.num_per_class) < 1:
             raise ValueError(f"dataset.num_per_class={list(self.num_per_class)}: expected 3 counts >= 1 "
                              "(train, val, test)")
-        if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"dataset.val_fraction={self.val_fraction!r}: must be in [0, 1)")
+        fraction("dataset.val_fraction", self.val_fraction)
         return self
 
 
@@ -165,8 +170,7 @@ class MVNetConfig:
     def validate(self) -> "MVNetConfig":
         one_of("mvnet", self.name, MVNET_NAMES)
         one_of("mvnet.pool", self.pool, POOLS)
-        if not 0.0 <= self.dropout < 1.0:
-            raise ValueError(f"mvnet.dropout={self.dropout!r}: must be in [0, 1)")
+        fraction("mvnet.dropout", self.dropout)
         return self
 
 
@@ -179,8 +183,7 @@ class TaskConfig:
 
     def validate(self) -> "TaskConfig":
         one_of("task", self.name, TASKS)
-        if not 0.0 <= self.label_smoothing < 1.0:
-            raise ValueError(f"task.label_smoothing={self.label_smoothing!r}: must be in [0, 1)")
+        fraction("task.label_smoothing", self.label_smoothing)
         return self
 
 
