@@ -143,7 +143,7 @@ def prepare_split(files: list[tuple[Path, int]], cache_path: Path, settings: dic
     return arrays
 
 
-def _val_mask(labels: np.ndarray, fraction: float, seed: int) -> np.ndarray:
+def val_mask(labels: np.ndarray, fraction: float, seed: int) -> np.ndarray:
     """Stratified: ``round(fraction * n_c)`` shapes of each class c (at least 1 when fraction > 0)."""
     rng = np.random.default_rng([seed, 7])
     mask = np.zeros(len(labels), bool)
@@ -154,7 +154,7 @@ def _val_mask(labels: np.ndarray, fraction: float, seed: int) -> np.ndarray:
     return mask
 
 
-def _subset(a: dict[str, np.ndarray], keep: np.ndarray) -> dict[str, np.ndarray]:
+def subset(a: dict[str, np.ndarray], keep: np.ndarray) -> dict[str, np.ndarray]:
     vo = np.concatenate([[0], np.cumsum(a["verts_per_shape"])])
     fo = np.concatenate([[0], np.cumsum(a["faces_per_shape"])])
     idx = np.flatnonzero(keep)
@@ -190,6 +190,6 @@ class ModelNetMeshes(PackedShapes):
         arrays = prepare_split(files[official], self.cache_path, settings, len(classes), strict, progress)
         self.skipped = [str(s) for s in arrays["skipped"]]
         if official == "train":
-            is_val = _val_mask(arrays["labels"], val_fraction, seed)
-            arrays = _subset(arrays, is_val if split == "val" else ~is_val)
+            is_val = val_mask(arrays["labels"], val_fraction, seed)
+            arrays = subset(arrays, is_val if split == "val" else ~is_val)
         super().__init__(arrays, classes, split, as_points)
