@@ -180,3 +180,23 @@ def test_trains_end_to_end_on_the_modelnet_layout(tree, tmp_path):
         m = train(cfg, tmp_path / "run")
     assert m["classes"] == ["airplane", "chair"] and m["test_size"] == 4
     assert (tmp_path / "run" / "metrics.json").is_file()
+
+
+def test_prepare_cli_builds_the_cache_and_reports_skips(tree, tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.prepare", "dataset=modelnet40", f"dataset.root={tree}",
+                        f"dataset.cache_dir={tmp_path / 'cache'}", "dataset.num_points=64", "logger.progress=false",
+                        f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    summary = json.loads((tmp_path / "run" / "prepare.json").read_text())
+    assert r.stdout.strip().splitlines()[-1] == str(tmp_path / "run" / "prepare.json")
+    splits = summary["splits"]
+    assert splits["test"]["shapes"] == 4 and splits["train"]["shapes"] + splits["val"]["shapes"] == 6
+    assert len(splits["train"]["skipped"]) == 4 and list((tmp_path / "cache" / "modelnet").glob("*.npz"))
+    missing = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.prepare", "dataset=modelnet40",
+                              f"dataset.root={tmp_path / 'nowhere'}", f"hydra.run.dir={tmp_path / 'run2'}"],
+                             capture_output=True, text=True, timeout=300)
+    assert missing.returncode == 2 and "expected layout" in missing.stderr
