@@ -96,9 +96,16 @@ def _part_path(parts: Path, path: Path) -> Path:
 
 
 def prepare_split(files: list[tuple[Path, int]], cache_path: Path, settings: dict, num_classes: int,
-                  strict: bool = False, progress: bool = True) -> dict[str, np.ndarray]:
-    """Preprocess ``files`` into the packed cache at ``cache_path`` (resumable; see the module doc)."""
+                  strict: bool = False, progress: bool = True, preprocess_fn=None) -> dict[str, np.ndarray]:
+    """Preprocess ``files`` into the packed cache at ``cache_path`` (resumable; see the module doc).
+
+    ``preprocess_fn(path, label, num_points, max_vertices, seed) -> {verts, faces, points, label, name}``
+    (raising ShapeFileError for an unusable file) lets other readers reuse this caching; default: this
+    module's ``preprocess``, looked up at call time."""
     from tqdm.auto import tqdm
+
+    if preprocess_fn is None:
+        preprocess_fn = preprocess
 
     cached = load_npz(cache_path, settings, (*PACKED_ARRAYS, "skipped"),
                       lambda a: validate(a, None, settings["num_points"], num_classes))
@@ -119,7 +126,7 @@ def prepare_split(files: list[tuple[Path, int]], cache_path: Path, settings: dic
             except Exception:  # a part cut short by a crash: redo that shape
                 part.unlink()
         try:
-            shape = preprocess(path, label, settings["num_points"], settings["max_vertices"], settings["seed"])
+            shape = preprocess_fn(path, label, settings["num_points"], settings["max_vertices"], settings["seed"])
         except ShapeFileError as exc:
             if strict:
                 raise
