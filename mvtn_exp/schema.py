@@ -60,7 +60,9 @@ class DatasetConfig:
     ``num_per_class`` / ``max_faces``: synthetic shapes per class for (train, val, test) and their
     face budget. ``max_vertices``: real meshes are simplified to about this many vertices (0: never;
     the paper used 20,000). ``strict``: a broken shape file stops the run instead of being skipped
-    and counted. ``cache_dir``: where preprocessed real datasets are cached.
+    and counted. ``cache_dir``: where preprocessed real datasets are cached. ShapeNet:
+    ``split_csv`` (default ``<root>/all.csv``, the SHREC17 split) and ``synset_dict`` (default
+    ``<root>/shapenet_synset_dict_v2.json``, synset id -> name).
     ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``val_fraction``: share of
     the official train split held out for model selection when a dataset has no val split.
     """
@@ -77,6 +79,8 @@ class DatasetConfig:
     strict: bool = False
     cache_dir: str = "${paths.cache_dir}"
     variant: str = ""
+    split_csv: Optional[str] = None
+    synset_dict: Optional[str] = None
     val_fraction: float = 0.1
     num_workers: int = 0
 

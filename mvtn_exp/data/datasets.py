@@ -14,15 +14,18 @@ from ..schema import DatasetConfig
 from .mesh_io import DatasetNotFound
 from .modelnet import LAYOUT as MODELNET_LAYOUT
 from .modelnet import ModelNetMeshes
+from .scanobjectnn import LAYOUT as SCANOBJECTNN_LAYOUT
+from .scanobjectnn import VARIANTS as SCANOBJECTNN_VARIANTS
+from .scanobjectnn import ScanObjectNN
+from .shapenet import LAYOUT as SHAPENET_LAYOUT
+from .shapenet import ShapeNetCore
 from .synthetic import SyntheticShapes
 
 # What each real dataset's folder must contain.
 LAYOUTS = {
     "modelnet40": MODELNET_LAYOUT,
-    "scanobjectnn": "<root>/main_split/{training,test}_objectdataset[_augmentedrot_scale75].h5 "
-                    "(variant obj_bg: main_split, obj_only: main_split_nobg, pb_t50_rs: *_augmentedrot_scale75.h5)",
-    "shapenet": "<root>/<synset>/<model_id>/models/model_normalized.obj (ShapeNetCore.v2) and "
-                "<root>/all.csv (the SHREC17 split: id,synsetId,subSynsetId,modelId,split)",
+    "scanobjectnn": SCANOBJECTNN_LAYOUT,
+    "shapenet": SHAPENET_LAYOUT,
 }
 
 
@@ -48,8 +51,18 @@ def build_dataset(cfg: DatasetConfig, split: str, progress: bool = True) -> Data
         return ModelNetMeshes(cfg.root, split, cache_dir=Path(cfg.cache_dir) / "modelnet", num_points=cfg.num_points,
                               max_vertices=cfg.max_vertices, val_fraction=cfg.val_fraction, seed=cfg.seed,
                               strict=cfg.strict, as_points=cfg.shape == "points", progress=progress)
-    if cfg.name in LAYOUTS:
-        root = _require_root(cfg)
-        raise NotImplementedError(f"dataset {cfg.name} at {root}: its reader is not built yet "
-                                  "(tracked by the real-datasets issue); only dataset=synthetic trains today")
+    if cfg.name == "scanobjectnn":
+        if cfg.variant not in SCANOBJECTNN_VARIANTS:
+            raise ValueError(f"dataset.variant={cfg.variant!r}: expected one of {', '.join(SCANOBJECTNN_VARIANTS)}")
+        if cfg.shape != "points":
+            raise ValueError("dataset.shape=mesh: ScanObjectNN holds point clouds only; use dataset.shape=points")
+        _require_root(cfg)
+        return ScanObjectNN(cfg.root, split, variant=cfg.variant, num_points=cfg.num_points,
+                            val_fraction=cfg.val_fraction, seed=cfg.seed, strict=cfg.strict)
+    if cfg.name == "shapenet":
+        _require_root(cfg)
+        return ShapeNetCore(cfg.root, split, split_csv=cfg.split_csv, synset_dict=cfg.synset_dict,
+                            cache_dir=Path(cfg.cache_dir) / "shapenet", num_points=cfg.num_points,
+                            max_vertices=cfg.max_vertices, seed=cfg.seed, strict=cfg.strict,
+                            as_points=cfg.shape == "points", progress=progress)
     raise ValueError(f"dataset={cfg.name!r}: expected one of synthetic, {', '.join(LAYOUTS)}")
