@@ -62,7 +62,8 @@ class DatasetConfig:
     the paper used 20,000). ``strict``: a broken shape file stops the run instead of being skipped
     and counted. ``cache_dir``: where preprocessed real datasets are cached. ShapeNet:
     ``split_csv`` (default ``<root>/all.csv``, the SHREC17 split) and ``synset_dict`` (default
-    ``<root>/shapenet_synset_dict_v2.json``, synset id -> name).
+    ``<root>/shapenet_synset_dict_v2.json``, synset id -> name). ModelNet40 ``format``: ``off``
+    (meshes), ``normal_resampled`` or ``ply_hdf5_2048`` (the PointNet authors' point releases).
     ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``val_fraction``: share of
     the official train split held out for model selection when a dataset has no val split.
     """
@@ -79,6 +80,7 @@ class DatasetConfig:
     strict: bool = False
     cache_dir: str = "${paths.cache_dir}"
     variant: str = ""
+    format: str = "off"
     split_csv: Optional[str] = None
     synset_dict: Optional[str] = None
     val_fraction: float = 0.1
@@ -88,6 +90,7 @@ class DatasetConfig:
         one_of("dataset.name", self.name, DATASETS)
         one_of("dataset.shape", self.shape, SHAPES)
         one_of("dataset.rotate", self.rotate, ROTATIONS)
+        one_of("dataset.format", self.format, ("off", "normal_resampled", "ply_hdf5_2048"))
         at_least("dataset.num_points", self.num_points, 1)
         at_least("dataset.seed", self.seed, 0)
         at_least("dataset.max_faces", self.max_faces, 1)

@@ -51,3 +51,15 @@ def test_missing_real_dataset_names_layout(tmp_path):
         variant = "obj_bg" if name == "scanobjectnn" else ""
         with pytest.raises(DatasetNotFound, match="expected layout"):
             _run({"name": name, "root": str(tmp_path / "none"), "shape": shape, "variant": variant}, tmp_path)
+
+
+@pytest.mark.parametrize("fmt", ["normal_resampled", "ply_hdf5_2048"])
+def test_modelnet40_point_formats(tmp_path, fmt):
+    from test_modelnet_points import make
+
+    root = make(tmp_path, fmt)
+    m = _run({"name": "modelnet40", "format": fmt, "root": str(root), "shape": "points", "num_points": 32,
+              "val_fraction": 0.3}, tmp_path, batch_size=2)
+    assert m["test_size"] > 0
+    with pytest.raises(ValueError, match="point clouds only"):
+        _run({"name": "modelnet40", "format": fmt, "root": str(root), "shape": "mesh"}, tmp_path)

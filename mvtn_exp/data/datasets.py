@@ -14,6 +14,8 @@ from ..schema import DatasetConfig
 from .mesh_io import DatasetNotFound
 from .modelnet import LAYOUT as MODELNET_LAYOUT
 from .modelnet import ModelNetMeshes
+from .modelnet_points import LAYOUTS as MODELNET_POINT_LAYOUTS
+from .modelnet_points import ModelNetPoints
 from .scanobjectnn import LAYOUT as SCANOBJECTNN_LAYOUT
 from .scanobjectnn import VARIANTS as SCANOBJECTNN_VARIANTS
 from .scanobjectnn import ScanObjectNN
@@ -46,6 +48,14 @@ def build_dataset(cfg: DatasetConfig, split: str, progress: bool = True) -> Data
     if cfg.rotate != "none":
         raise ValueError(f"dataset.rotate={cfg.rotate!r}: only dataset=synthetic rotates its shapes; "
                          f"use dataset.rotate=none for {cfg.name}")
+    if cfg.name == "modelnet40" and cfg.format != "off":
+        if cfg.shape != "points":
+            raise ValueError(f"dataset.format={cfg.format}: point clouds only; use dataset.shape=points")
+        if not Path(cfg.root).is_dir():
+            raise DatasetNotFound(f"dataset modelnet40 ({cfg.format}) not found at {Path(cfg.root).resolve()}; "
+                                  f"expected layout: {MODELNET_POINT_LAYOUTS[cfg.format]}")
+        return ModelNetPoints(cfg.root, split, format=cfg.format, num_points=cfg.num_points,
+                              val_fraction=cfg.val_fraction, seed=cfg.seed, strict=cfg.strict)
     if cfg.name == "modelnet40":
         _require_root(cfg)
         return ModelNetMeshes(cfg.root, split, cache_dir=Path(cfg.cache_dir) / "modelnet", num_points=cfg.num_points,
