@@ -100,3 +100,13 @@ def test_peak_memory_detects_200mib():
         y = torch.ones(1000)
         del y
     assert small.peak_mib < 50
+
+
+def test_loader_bench_table():
+    from mvtn_exp.bench.loader_bench import run
+
+    rows = [ln for ln in run(shapes=8, faces=80, batch=4, views=2, size=32).splitlines() if ln.startswith("| ")]
+    assert [r.split("|")[1].strip() for r in rows[1:]] == ["0", "2"]
+    for r in rows[1:]:
+        ms_batch, ms_step, share = (c.strip() for c in r.split("|")[2:5])
+        assert float(ms_batch) > 0 and float(ms_step) > 0 and share.endswith("%")
