@@ -60,6 +60,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from .h5io import read_labelled_clouds
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere, zup_to_yup
 from .modelnet import CountWarning, val_mask
 
@@ -165,33 +166,9 @@ def read_points_txt(path, num_points: int) -> np.ndarray:
 
 
 def read_h5(path: Path, num_classes: int) -> tuple[np.ndarray, np.ndarray]:
-    """``data [N, P, 3]`` float and ``label [N]`` int64 (checked against ``num_classes``) of one
-    ply_hdf5_2048 file; ShapeFileError naming the file and the key otherwise."""
-    import h5py
-
-    try:
-        fh = h5py.File(path, "r")
-    except OSError as exc:
-        raise ShapeFileError(f"{path}: not a readable HDF5 file ({exc})") from None
-    with fh:
-        for key in ("data", "label"):
-            if key not in fh:
-                raise ShapeFileError(f"{path}: no key {key!r} (has {sorted(fh.keys())}); expected 'data' "
-                                     "[N, 2048, 3] and 'label' [N, 1]")
-        data, label = fh["data"][()], fh["label"][()]
-    if data.ndim != 3 or data.shape[2] != 3 or not np.issubdtype(data.dtype, np.floating):
-        raise ShapeFileError(f"{path}: key 'data' has shape {data.shape} dtype {data.dtype}; expected float "
-                             "[N, 2048, 3]")
-    n = len(data)
-    if label.shape not in ((n, 1), (n,)) or not np.issubdtype(label.dtype, np.integer):
-        raise ShapeFileError(f"{path}: key 'label' has shape {label.shape} dtype {label.dtype}; expected "
-                             f"integers [{n}, 1] (one per cloud of 'data')")
-    label = label.reshape(n).astype(np.int64)
-    bad = (label < 0) | (label >= num_classes)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise ShapeFileError(f"{path}: key 'label' has {int(bad.sum())} values outside 0..{num_classes - 1} "
-                             f"(the names file's classes), e.g. {int(label[i])} at row {i}")
+    """``data [N, P, 3]`` float and ``label [N]`` int64 (checked against ``num_classes``, the names
+    file's classes) of one ply_hdf5_2048 file; ShapeFileError naming the file and the key otherwise."""
+    data, label, _ = read_labelled_clouds(path, num_classes, expected="'data' [N, 2048, 3] and 'label' [N, 1]")
     return data, label
 
 

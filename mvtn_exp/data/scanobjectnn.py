@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from .h5io import read_labelled_clouds
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere
 from .modelnet import CountWarning, val_mask
 
@@ -68,42 +69,15 @@ def h5_path(root, variant: str, official: str) -> Path:
 def read_h5(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``data [N, 2048, 3] float32``, ``label [N] int64`` and ``mask [N, 2048] bool`` (True on object
     points; None when the file has no ``mask``), checked; raises ShapeFileError naming file and key."""
-    import h5py
-
-    try:
-        fh = h5py.File(path, "r")
-    except OSError as exc:
-        raise ShapeFileError(f"{path}: not a readable HDF5 file ({exc})") from None
-    with fh:
-        for key in ("data", "label"):
-            if key not in fh:
-                raise ShapeFileError(f"{path}: no key {key!r} (has {sorted(fh.keys())}); expected 'data' "
-                                     f"[N, {POINTS}, 3], 'label' [N] and 'mask' [N, {POINTS}]")
-        data, label = fh["data"][()], fh["label"][()]
-        mask = fh["mask"][()] if "mask" in fh else None
-    if data.ndim != 3 or data.shape[1:] != (POINTS, 3) or not np.issubdtype(data.dtype, np.floating):
-        raise ShapeFileError(f"{path}: key 'data' has shape {data.shape} dtype {data.dtype}; expected float "
-                             f"[N, {POINTS}, 3]")
-    n = len(data)
-    if label.ndim == 2 and label.shape[1] == 1:
-        label = label[:, 0]
-    if label.shape != (n,):
-        raise ShapeFileError(f"{path}: key 'label' has shape {label.shape}; expected [{n}] or [{n}, 1] "
-                             f"(one per cloud of 'data')")
-    if not np.issubdtype(label.dtype, np.integer):
-        if not (np.issubdtype(label.dtype, np.floating) and np.isfinite(label).all()
-                and (label == np.round(label)).all()):
-            raise ShapeFileError(f"{path}: key 'label' holds non-integer values (dtype {label.dtype})")
-    label = label.astype(np.int64)
-    bad = (label < 0) | (label >= len(CLASSES))
-    if bad.any():
-        raise ShapeFileError(f"{path}: key 'label' has {int(bad.sum())} values outside 0..{len(CLASSES) - 1} "
-                             f"(e.g. {int(label[bad][0])} at row {int(np.flatnonzero(bad)[0])})")
+    data, label, extra = read_labelled_clouds(
+        path, len(CLASSES), POINTS, optional=("mask",),
+        expected=f"'data' [N, {POINTS}, 3], 'label' [N] and 'mask' [N, {POINTS}]")
+    mask = extra.get("mask")
     if mask is not None:
-        if mask.shape != (n, POINTS):
-            raise ShapeFileError(f"{path}: key 'mask' has shape {mask.shape}; expected [{n}, {POINTS}]")
+        if mask.shape != (len(data), POINTS):
+            raise ShapeFileError(f"{path}: key 'mask' has shape {mask.shape}; expected [{len(data)}, {POINTS}]")
         mask = mask != -1
-    return data, label, mask
+    return data.astype(np.float32), label, mask
 
 
 class ScanObjectNN(Dataset):
