@@ -30,7 +30,7 @@ import torch
 import trimesh
 
 from .mesh_io import normalize_unit_sphere, zup_to_yup
-from .packed import CacheWarning, PackedShapes, load_npz, sample_surface, save_npz_atomic, validate
+from .packed import CacheWarning, PackedShapes, load_npz, sample_surface, save_npz_atomic, validate  # noqa: F401 (CacheWarning re-exported)
 
 GEOMETRY_VERSION = "1"  # bump whenever a builder changes: old caches then miss
 SPLITS = ("train", "val", "test")
