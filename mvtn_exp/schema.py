@@ -290,25 +290,76 @@ class TrainConfig:
 
 
 @dataclass
+class RotationEvalConfig:
+    """Rotation robustness: each test shape turned about Y by an angle uniform in [-theta, theta]
+    (degrees), ``repeats`` times with seeds ``seed, seed+1, ...``."""
+
+    thetas: list[float] = field(default_factory=lambda: [90.0, 180.0])
+    repeats: int = 10
+    seed: int = 0
+
+
+@dataclass
+class OcclusionEvalConfig:
+    """Occlusion robustness: crop ``ratio`` of the normalised extent from each of +-X, +-Y, +-Z."""
+
+    ratios: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.2, 0.3, 0.5, 0.75])
+    seed: int = 0
+
+
+@dataclass
+class RetrievalEvalConfig:
+    """Retrieval: features before the classifier, LFDA to ``dim`` (fitted on the train split), every
+    test shape queries the whole train split; ``list_length`` for SHREC-style metrics."""
+
+    dim: int = 128
+    k: int = 7
+    list_length: int = 1000
+
+
+EVAL_TASKS = ("classification", "retrieval")
+ROBUSTNESS = ("none", "rotation", "occlusion")
+
+
+@dataclass
 class EvalConfig:
     """``mvtn-eval ckpt=PATH``: rebuild the model from the checkpoint's config, evaluate ``split``.
 
-    ``device`` / ``batch_size``: null keeps the checkpoint's values. ``root``: override the
-    dataset root stored in the checkpoint (data moved)."""
+    ``task``: classification | retrieval; ``robustness``: none | rotation | occlusion (with
+    classification). ``device`` / ``batch_size``: null keeps the checkpoint's values. ``root``:
+    override the dataset root stored in the checkpoint (data moved)."""
 
     ckpt: Optional[str] = None
     split: str = "test"
+    task: str = "classification"
+    robustness: str = "none"
     device: Optional[str] = None
     batch_size: Optional[int] = None
     root: Optional[str] = None
     progress: bool = True
+    rotation: RotationEvalConfig = field(default_factory=RotationEvalConfig)
+    occlusion: OcclusionEvalConfig = field(default_factory=OcclusionEvalConfig)
+    retrieval: RetrievalEvalConfig = field(default_factory=RetrievalEvalConfig)
 
     def validate(self) -> "EvalConfig":
         if not self.ckpt:
             raise ValueError("ckpt: missing; pass ckpt=PATH to a best.pt / last.pt written by mvtn-train")
         one_of("split", self.split, ("train", "val", "test"))
+        one_of("task", self.task, EVAL_TASKS)
+        one_of("robustness", self.robustness, ROBUSTNESS)
+        if self.task == "retrieval" and self.robustness != "none":
+            raise ValueError(f"robustness={self.robustness}: robustness is evaluated with task=classification")
         if self.batch_size is not None:
             at_least("batch_size", self.batch_size, 1)
+        at_least("rotation.repeats", self.rotation.repeats, 1)
+        for t in self.rotation.thetas:
+            if not 0 <= t <= 180:
+                raise ValueError(f"rotation.thetas: {t} is outside [0, 180] degrees")
+        for r in self.occlusion.ratios:
+            fraction("occlusion.ratios", r)
+        at_least("retrieval.dim", self.retrieval.dim, 1)
+        at_least("retrieval.k", self.retrieval.k, 1)
+        at_least("retrieval.list_length", self.retrieval.list_length, 1)
         return self
 
 

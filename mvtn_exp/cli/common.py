@@ -63,14 +63,14 @@ def describe(exc: Exception, schema) -> tuple[str, str]:
     return key, msg
 
 
-def _config_file(key: str, choices: dict, config_name: str) -> str:
+def _config_file(key: str, choices: dict, config_name: str, conf_dir: str = CONF_DIR) -> str:
     """The file a key's value comes from: its group's chosen option file, else the primary config."""
     group = key.split(".")[0] if key else ""
     if group in choices and choices[group]:
-        return f"{CONF_DIR}/{group}/{choices[group]}.yaml"
+        return f"{conf_dir}/{group}/{choices[group]}.yaml"
     if "/" in key:  # "experiment/nope"
-        return f"{CONF_DIR}/{key}.yaml"
-    return f"{CONF_DIR}/{config_name}.yaml"
+        return f"{conf_dir}/{key}.yaml"
+    return f"{conf_dir}/{config_name}.yaml"
 
 
 def _choices(compose, config_name: str, overrides: list[str]) -> dict:
@@ -106,7 +106,7 @@ def sweep_variants(overrides: list[str]) -> list[list[str]]:
 
 
 def check_overrides(prog: str, config_name: str, schema, argv: list[str],
-                    validate: Optional[Callable] = None) -> None:
+                    validate: Optional[Callable] = None, config_module: str = CONF_MODULE) -> None:
     """Compose ``config_name`` with the command-line overrides (each value of a ``-m`` sweep) and
     run ``validate(cfg_object)``; on a config error print one line naming the key, the config
     file and the allowed keys / options / values, and exit with code 2 (no traceback)."""
@@ -118,7 +118,7 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
     choices: dict = {}
     try:
         variants = sweep_variants(overrides) if any(a in MULTIRUN_FLAGS for a in argv) else [overrides]
-        with initialize_config_module(version_base="1.3", config_module=CONF_MODULE):
+        with initialize_config_module(version_base="1.3", config_module=config_module):
             for variant in variants:
                 # the group options chosen (to name the file of a bad key), from the group overrides alone
                 groups_only = [o for o in variant if "." not in o.split("=", 1)[0]]
@@ -135,5 +135,6 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
         if "full_key:" not in str(cause):
             cause = exc
         key, msg = describe(cause, schema)
-        print(f"{prog}: config error in {_config_file(key, choices, config_name)}: {msg}", file=sys.stderr)
+        conf_dir = config_module.replace(".", "/")
+        print(f"{prog}: config error in {_config_file(key, choices, config_name, conf_dir)}: {msg}", file=sys.stderr)
         sys.exit(2)

@@ -1,4 +1,5 @@
-"""``mvtn-eval ckpt=PATH [split=test] [device=cuda]``: evaluate a checkpoint written by ``mvtn-train``.
+"""``mvtn-eval ckpt=PATH [robustness=rotation|occlusion] [task=retrieval] [split=test] [device=cuda]``:
+evaluate a checkpoint written by ``mvtn-train``.
 
 The model is rebuilt from the config stored in the checkpoint. Writes metrics.json, confusion.json
 and confusion.png under ``outputs/eval/runs/<time>``; the last printed line is metrics.json's path.
@@ -21,7 +22,7 @@ from .common import check_overrides
 register_configs()
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="eval")
+@hydra.main(version_base="1.3", config_path="../conf/evaluate", config_name="eval")
 def _app(cfg) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -33,7 +34,8 @@ def _app(cfg) -> None:
 
 
 def main() -> None:
-    check_overrides("mvtn-eval", "eval", EvalConfig, sys.argv[1:], validate=EvalConfig.validate)
+    check_overrides("mvtn-eval", "eval", EvalConfig, sys.argv[1:], validate=EvalConfig.validate,
+                    config_module="mvtn_exp.conf.evaluate")
     _app()
 
 

@@ -1,6 +1,7 @@
 """``evaluate_checkpoint``: rebuild MVTN from the config stored in a checkpoint and evaluate one split."""
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -10,7 +11,7 @@ from ..data.datasets import build_dataset
 from ..model import build_mvtn
 from ..schema import EvalConfig, TrainConfig
 from ..tasks import classification
-from . import checkpoint
+from . import checkpoint, eval_modes
 from .trainer import as_config, config_dict, eval_loader, view_offsets, write_results
 
 
@@ -56,14 +57,32 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
         raise checkpoint.CheckpointMismatch(f"checkpoint {ecfg.ckpt!r} was trained on classes {state['classes']} "
                                             f"but dataset {cfg.dataset.name} at {cfg.dataset.root} has {classes}")
     model = load_model(cfg, state, len(classes), ecfg.ckpt, device)
-    res = classification.evaluate(model, eval_loader(cfg, dataset), len(classes), desc=ecfg.split,
-                                  progress=ecfg.progress)
+    loader = eval_loader(cfg, dataset)
+    t0 = time.perf_counter()
+    res = classification.evaluate(model, loader, len(classes), desc=ecfg.split, progress=ecfg.progress)
+    seconds = {"classification": time.perf_counter() - t0}
     offsets = view_offsets(model, res["azim"], res["elev"])
     metrics = {"test_acc": res["acc"], "test_mean_class_acc": res["mean_class_acc"], "test_loss": res["loss"],
                "test_per_class_acc": dict(zip(classes, res["per_class_acc"])), "confusion_matrix": res["confusion"],
                "classes": classes, "test_size": res["n"], "split": ecfg.split, "ckpt": str(ecfg.ckpt),
                "ckpt_epoch": int(state.get("epoch", -1)) + 1, **{f"test_{k}": v for k, v in offsets.items()},
                "config": config_dict(cfg)}
+    tables = [f"## Classification ({ecfg.split})\n\n| accuracy | mean per-class | n |\n|---|---|---|\n"
+              f"| {res['acc']:.4f} | {res['mean_class_acc']:.4f} | {res['n']} |"]
+    mode = ecfg.robustness if ecfg.robustness != "none" else ecfg.task
+    if mode != "classification":
+        t0 = time.perf_counter()
+        if mode == "rotation":
+            extra, table = eval_modes.rotation(model, loader, len(classes), ecfg)
+        elif mode == "occlusion":
+            extra, table = eval_modes.occlusion(model, loader, len(classes), ecfg, run_dir)
+        else:
+            extra, table = eval_modes.retrieval_eval(model, cfg, ecfg, dataset, run_dir)
+        seconds[mode] = time.perf_counter() - t0
+        metrics.update(extra)
+        tables.append(f"## {mode.capitalize()}\n\n{table}")
+    metrics["seconds"] = seconds
+    (run_dir / "results.md").write_text("\n\n".join(tables) + "\n")
     write_results(run_dir, metrics)
-    print(f"{ecfg.split} accuracy {res['acc']:.4f} (mean per-class {res['mean_class_acc']:.4f}, n={res['n']})")
+    print("\n\n".join(tables))
     return metrics

@@ -28,14 +28,18 @@ def summarize(confusion: Tensor) -> dict:
 
 
 @torch.no_grad()
-def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool = True) -> dict:
+def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool = True, transform=None) -> dict:
     """Eval mode (renderer: camera light, white object): loss, ``summarize`` metrics, the confusion
-    matrix as nested lists, and the predicted views ``azim`` / ``elev`` ``[N, M]`` (degrees, CPU)."""
+    matrix as nested lists, and the predicted views ``azim`` / ``elev`` ``[N, M]`` (degrees, CPU).
+    ``transform(batch) -> batch`` (e.g. a rotation or a crop) is applied to every batch first, so
+    the selector and the renderer both see the transformed shapes."""
     model.eval()
     conf = torch.zeros(num_classes, num_classes, dtype=torch.long)
     loss_sum, azim, elev = 0.0, [], []
     first_images = None
     for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
+        if transform is not None:
+            batch = transform(batch)
         labels = batch["labels"].to(model.device)
         out = model(batch)
         loss_sum += float(nn.functional.cross_entropy(out["logits"], labels, reduction="sum"))

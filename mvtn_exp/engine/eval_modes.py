@@ -1,0 +1,120 @@
+"""The ``mvtn-eval`` modes beyond plain classification: rotation and occlusion robustness, retrieval.
+
+Each takes the rebuilt model, the dataset config and the run folder, and returns a metrics dict
+plus a Markdown table; PNG figures are written into the run folder.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from ..data.datasets import build_dataset
+from ..schema import EvalConfig, TrainConfig
+from ..tasks import classification, retrieval, robustness
+from .trainer import eval_loader
+
+
+def _std(values: list[float]) -> float:
+    return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+
+
+def rotation(model, loader, num_classes: int, ecfg: EvalConfig) -> tuple[dict, str]:
+    """Accuracy under random rotations about Y in [-theta, theta], ``repeats`` seeds per theta."""
+    rows, out = [], {}
+    for theta in ecfg.rotation.thetas:
+        accs = []
+        for rep in range(ecfg.rotation.repeats):
+            gen = torch.Generator().manual_seed(ecfg.rotation.seed + rep)
+
+            def turn(batch, gen=gen, theta=theta):
+                angles = robustness.sample_angles(len(batch["labels"]), theta, gen)
+                return robustness.rotate_batch(batch, angles)
+
+            res = classification.evaluate(model, loader, num_classes, desc=f"rotation {theta:g} #{rep + 1}",
+                                          progress=ecfg.progress, transform=turn)
+            accs.append(res["acc"])
+        out[f"{theta:g}"] = {"mean_acc": float(np.mean(accs)), "std_acc": _std(accs), "accs": accs}
+        rows.append(f"| {theta:g} | {len(accs)} | {np.mean(accs):.4f} ± {_std(accs):.4f} |")
+    table = "| theta (deg) | repeats | accuracy (mean ± std) |\n|---|---|---|\n" + "\n".join(rows)
+    return {"rotation": out}, table
+
+
+def occlusion(model, loader, num_classes: int, ecfg: EvalConfig, run_dir: Path) -> tuple[dict, str]:
+    """Accuracy with ``ratio`` of the extent cropped from each of the six directions."""
+    out, rows = {}, []
+    dirs = robustness.DIRECTIONS
+    for ratio in ecfg.occlusion.ratios:
+        per_dir = {}
+        for d in dirs:
+            gen = torch.Generator().manual_seed(ecfg.occlusion.seed)
+
+            def crop(batch, gen=gen, d=d, ratio=ratio):
+                return robustness.crop_batch(batch, d, ratio, gen)
+
+            per_dir[d] = classification.evaluate(model, loader, num_classes, desc=f"occlusion {ratio:g} {d}",
+                                                 progress=ecfg.progress, transform=crop)["acc"]
+        mean = float(np.mean(list(per_dir.values())))
+        out[f"{ratio:g}"] = {"per_direction": per_dir, "mean_acc": mean}
+        rows.append(f"| {ratio:g} | " + " | ".join(f"{per_dir[d]:.4f}" for d in dirs) + f" | {mean:.4f} |")
+    table = ("| ratio | " + " | ".join(dirs) + " | mean |\n|---|" + "---|" * (len(dirs) + 1) + "\n"
+             + "\n".join(rows))
+    _occlusion_png(out, run_dir / "occlusion.png")
+    return {"occlusion": out}, table
+
+
+def _occlusion_png(out: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ratios = [float(r) for r in out]
+    fig, ax = plt.subplots(figsize=(5, 3.5), dpi=100)
+    for d in robustness.DIRECTIONS:
+        ax.plot(ratios, [out[r]["per_direction"][d] for r in out], marker=".", lw=1, label=d)
+    ax.plot(ratios, [out[r]["mean_acc"] for r in out], color="black", lw=2, marker="o", label="mean")
+    ax.set_xlabel("occlusion ratio")
+    ax.set_ylabel("accuracy")
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+@torch.no_grad()
+def features(model, loader, progress: bool, desc: str) -> tuple[np.ndarray, np.ndarray]:
+    """Shape features (the layer before the classifier) ``[N, D]`` and labels ``[N]``."""
+    model.eval()
+    feats, labels = [], []
+    for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
+        feats.append(model(batch)["features"].float().cpu())
+        labels.append(batch["labels"])
+    return torch.cat(feats).numpy().astype(np.float64), torch.cat(labels).numpy()
+
+
+def retrieval_eval(model, cfg: TrainConfig, ecfg: EvalConfig, dataset, run_dir: Path) -> tuple[dict, str]:
+    """Every ``split`` shape queries the whole train split in the LFDA space fitted on the train split."""
+    database = build_dataset(cfg.dataset, "train", progress=ecfg.progress)
+    db_x, db_y = features(model, eval_loader(cfg, database), ecfg.progress, "database (train)")
+    q_x, q_y = features(model, eval_loader(cfg, dataset), ecfg.progress, f"queries ({ecfg.split})")
+    t0 = time.perf_counter()
+    proj = retrieval.LFDA(dim=ecfg.retrieval.dim, k=ecfg.retrieval.k).fit(db_x, db_y)
+    db_z, q_z = proj.transform(db_x), proj.transform(q_x)
+    result = {}
+    table_rows = []
+    for name, (qa, da) in {"raw": (q_x, db_x), "lfda": (q_z, db_z)}.items():
+        m_ap, _ = retrieval.mean_average_precision(qa, q_y, da, db_y)
+        result[f"map_{name}"] = float(m_ap)
+        table_rows.append(f"| {name} | {qa.shape[1]} | {m_ap:.4f} |")
+    curves = {name: retrieval.pr_curve(qa, q_y, da, db_y) for name, (qa, da) in
+              {"raw features": (q_x, db_x), "LFDA": (q_z, db_z)}.items()}
+    retrieval.pr_curve_png(curves, run_dir / "precision_recall.png")
+    result["lfda_seconds"] = time.perf_counter() - t0
+    result["queries"], result["database"] = int(len(q_y)), int(len(db_y))
+    table = "| space | dim | mAP |\n|---|---|---|\n" + "\n".join(table_rows)
+    return {"retrieval": result}, table

@@ -1,0 +1,230 @@
+"""Retrieval: AP / mAP against sklearn and brute force, ranking ties, LFDA (scatter, eigenproblem,
+separation vs PCA, degenerate inputs), SHREC'17 metrics on a hand-computed example, PR curve, PNG."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from sklearn.decomposition import PCA
+from sklearn.metrics import average_precision_score
+
+from mvtn_exp.tasks.retrieval import (
+    LFDA,
+    average_precision,
+    lfda,
+    local_scatter,
+    mean_average_precision,
+    pr_curve,
+    pr_curve_png,
+    rank,
+    regularize,
+    shrec17_metrics,
+)
+
+
+def _brute_ap(rel_sorted):
+    hits, precs = 0, []
+    for i, r in enumerate(rel_sorted):
+        if r:
+            hits += 1
+            precs.append(hits / (i + 1))
+    return sum(precs) / len(precs) if precs else 0.0
+
+
+# ------------------------------------------------------------------------------------- AP / mAP
+
+def test_ap_matches_sklearn_and_brute_force():
+    rng = np.random.default_rng(0)
+    q, db = rng.normal(size=(7, 5)), rng.normal(size=(40, 5))  # continuous: distinct distances
+    ql, dl = rng.integers(0, 3, 7), rng.integers(0, 3, 40)
+    dist = np.linalg.norm(q[:, None] - db[None], axis=-1)
+    assert all(len(np.unique(row)) == row.size for row in dist)
+    m, per = mean_average_precision(q, ql, db, dl)
+    order = rank(q, db)
+    for i in range(len(q)):
+        relevant = dl == ql[i]
+        assert np.array_equal(order[i], np.argsort(dist[i]))
+        assert per[i] == pytest.approx(average_precision_score(relevant, -dist[i]), abs=1e-12)
+        assert per[i] == pytest.approx(_brute_ap(relevant[order[i]]), abs=1e-12)
+        assert average_precision(relevant[order[i]]) == pytest.approx(per[i])
+    assert m == pytest.approx(per.mean())
+
+
+def test_rank_covers_whole_database_and_breaks_ties_by_index():
+    db = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0]])
+    q = np.zeros((2, 2))  # every database item at distance 1: pure tie
+    order = rank(q, db)
+    assert order.shape == (2, 5)
+    assert order.tolist() == [[0, 1, 2, 3, 4]] * 2
+    q2 = np.array([[1.0, 0.1]])  # items 0 and 2 tie (duplicates), then 1/4 tie, then 3
+    assert rank(q2, db).tolist() == [[0, 2, 1, 4, 3]]
+    rng = np.random.default_rng(1)
+    big = rank(rng.normal(size=(3, 4)), rng.normal(size=(600, 4)))  # more than one block of queries
+    assert all(sorted(row) == list(range(600)) for row in big.tolist())
+
+
+def test_ap_no_relevant_is_zero_and_map_ranks_everything():
+    assert average_precision(np.zeros(5, dtype=bool)) == 0.0
+    assert average_precision([False, True, False, True]) == pytest.approx((1 / 2 + 2 / 4) / 2)
+    db = np.arange(6, dtype=float)[:, None]
+    dl = np.array([0, 0, 0, 1, 1, 1])
+    q = np.array([[0.0], [5.0]])
+    m, per = mean_average_precision(q, [2, 1], db, dl)  # class 2 is absent from the database
+    assert per[0] == 0.0 and per[1] == pytest.approx(1.0)
+    assert m == pytest.approx(0.5)
+    # far relevant item is still counted: the whole database is ranked, not a top-k prefix
+    _, per2 = mean_average_precision([[0.0]], [1], db, np.array([1, 0, 0, 0, 0, 1]))
+    assert per2[0] == pytest.approx((1 + 2 / 6) / 2)
+
+
+# ------------------------------------------------------------------------------------------ LFDA
+
+def _brute_scatter(X, y, k):
+    n = len(X)
+    D = np.linalg.norm(X[:, None] - X[None], axis=-1)
+    sigma = np.sort(D, axis=1)[:, k]
+    A = np.exp(-D ** 2 / np.outer(sigma, sigma))
+    counts = {c: int((y == c).sum()) for c in np.unique(y)}
+    S_w, S_b = np.zeros((X.shape[1],) * 2), np.zeros((X.shape[1],) * 2)
+    for i in range(n):
+        for j in range(n):
+            diff = np.outer(X[i] - X[j], X[i] - X[j])
+            if y[i] == y[j]:
+                nc = counts[y[i]]
+                S_w += 0.5 * A[i, j] / nc * diff
+                S_b += 0.5 * A[i, j] * (1 / n - 1 / nc) * diff
+            else:
+                S_b += 0.5 / n * diff
+    return S_w, S_b
+
+
+def test_local_scatter_matches_pairwise_definition():
+    rng = np.random.default_rng(2)
+    X = rng.normal(size=(13, 3)) + 5.0
+    y = np.array([0] * 5 + [1] * 4 + [2] * 3 + [3])
+    S_w, S_b = local_scatter(X, y, k=3)
+    ref_w, ref_b = _brute_scatter(X, y, 3)
+    assert np.allclose(S_w, ref_w, atol=1e-10) and np.allclose(S_b, ref_b, atol=1e-10)
+
+
+def _loo_1nn(Z, y):
+    D = np.linalg.norm(Z[:, None] - Z[None], axis=-1)
+    np.fill_diagonal(D, np.inf)
+    return float((y[D.argmin(1)] == y).mean())
+
+
+def _hidden_subspace_data(seed=3, per_class=40, d=10):
+    rng = np.random.default_rng(seed)
+    means = np.array([[0.0, 0.0], [3.0, 0.0], [1.5, 2.6]])
+    y = np.repeat(np.arange(3), per_class)
+    signal = means[y] + 0.4 * rng.normal(size=(len(y), 2))
+    noise = 8.0 * rng.normal(size=(len(y), d - 2))  # high variance, no class information
+    Q = np.linalg.qr(rng.normal(size=(d, d)))[0]  # hide the subspace by a random rotation
+    return np.hstack([signal, noise]) @ Q, y
+
+
+def test_lfda_separates_better_than_pca():
+    X, y = _hidden_subspace_data()
+    Z_lfda = LFDA(dim=2, k=7).fit_transform(X, y)
+    Z_pca = PCA(n_components=2).fit_transform(X)
+    acc_lfda, acc_pca = _loo_1nn(Z_lfda, y), _loo_1nn(Z_pca, y)
+    assert acc_lfda > 0.95
+    assert acc_lfda > acc_pca + 0.3
+
+
+def test_lfda_generalised_eigenproblem_residual():
+    X, y = _hidden_subspace_data(seed=4, per_class=15, d=6)
+    eps = 1e-4
+    V = lfda(X, y, dim=3, k=5, metric="plain", eps=eps)
+    S_w, S_b = local_scatter(X, y, k=5)
+    S_reg = regularize(S_w, eps, S_b)
+    lam = np.einsum("di,de,ei->i", V, S_b, V) / np.einsum("di,de,ei->i", V, S_reg, V)
+    resid = np.linalg.norm(S_b @ V - S_reg @ V * lam, axis=0) / np.linalg.norm(S_b @ V, axis=0)
+    assert resid.max() < 1e-8
+    assert np.all(np.diff(lam) <= 1e-9)  # descending
+    model = LFDA(dim=3, k=5, eps=eps).fit(X, y)
+    assert np.allclose(model.eigvals_, lam, rtol=1e-8)
+    # the weighted embedding scales the same vectors by sqrt(lambda)
+    assert np.allclose(lfda(X, y, 3, 5, "weighted", eps), V * np.sqrt(np.clip(lam, 0, None)))
+    T = lfda(X, y, 3, 5, "orthonormalized", eps)
+    assert np.allclose(T.T @ T, np.eye(3), atol=1e-10)
+
+
+def test_lfda_degenerate_inputs_shapes_and_clamp():
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(8, 30))  # d > n: S_w singular
+    y = np.array([0, 0, 0, 1, 1, 1, 2, 3])  # classes 2 and 3 have one sample
+    for metric in ("weighted", "orthonormalized", "plain"):
+        T = lfda(X, y, dim=4, metric=metric)
+        assert T.shape == (30, 4) and np.all(np.isfinite(T))
+    X[1] = X[0]  # duplicate point: sigma may hit the floor
+    model = LFDA(dim=2, k=1).fit(X, y)
+    Z = model.transform(rng.normal(size=(5, 30)))
+    assert Z.shape == (5, 2) and np.all(np.isfinite(Z))
+    assert np.allclose(model.transform(model.mean_[None]), 0.0)
+    assert lfda(rng.normal(size=(20, 5)), np.arange(20) % 2, dim=50).shape == (5, 5)  # dim clamped to d
+    assert np.all(np.isfinite(lfda(np.ones((4, 3)), [0, 0, 1, 1], dim=2)))  # all points identical
+    with pytest.raises(ValueError):
+        lfda(X, y, dim=2, metric="nope")
+
+
+# -------------------------------------------------------------------------------- SHREC metrics
+
+# database: 1-D points 0, 1, 2, 3 with labels 0, 1, 0, 1.
+# query A (label 0, x=1.4): order 1, 2, 0, 3 -> relevance 0 1 1 0
+# query C (label 0, x=-.5): order 0, 1, 2, 3 -> relevance 1 0 1 0
+# query D (label 1, x=-.5): order 0, 1, 2, 3 -> relevance 0 1 0 1
+_DB, _DL = np.arange(4.0)[:, None], np.array([0, 1, 0, 1])
+_Q, _QL = np.array([[1.4], [-0.5], [-0.5]]), np.array([0, 0, 1])
+
+
+def test_shrec_metrics_hand_computed():
+    out = shrec17_metrics(_Q, _QL, _DB, _DL, n=3)
+    assert out["N"] == 3
+    g = 1 / math.log2(3)
+    ideal = 1 + g  # two relevant items in the database
+    per = {"P@N": [2 / 3, 2 / 3, 1 / 3], "R@N": [1, 1, 0.5], "F1@N": [0.8, 0.8, 0.4],
+           "mAP": [(1 / 2 + 2 / 3) / 2, (1 + 2 / 3) / 2, 1 / 2],
+           "NDCG": [(g + 0.5) / ideal, 1.5 / ideal, g / ideal]}
+    for key, vals in per.items():
+        assert out["per_query"][key] == pytest.approx(vals), key
+        assert out["micro"][key] == pytest.approx(np.mean(vals)), key
+        assert out["macro"][key] == pytest.approx(((vals[0] + vals[1]) / 2 + vals[2]) / 2), key
+    assert out["micro"]["P@N"] == pytest.approx(5 / 9) and out["macro"]["P@N"] == pytest.approx(0.5)
+    assert out["macro"]["mAP"] == pytest.approx(29 / 48)
+
+
+def test_shrec_n_capped_and_graded_ndcg():
+    out = shrec17_metrics(_Q, _QL, _DB, _DL)  # default n=1000 > 4 database items
+    assert out["N"] == 4
+    assert out["micro"]["R@N"] == pytest.approx(1.0) and out["micro"]["P@N"] == pytest.approx(0.5)
+    # graded: query A (sub 'a'): order 1, 2, 0, 3 -> gains 0 1 2 0; ideal 2 1
+    graded = shrec17_metrics(_Q[:1], _QL[:1], _DB, _DL, n=3, query_sublabels=["a"], db_sublabels=["a", "x", "b", "y"])
+    g = 1 / math.log2(3)
+    assert graded["per_query"]["NDCG"][0] == pytest.approx((g + 2 * 0.5) / (2 + g))
+    assert graded["micro"]["P@N"] == pytest.approx(2 / 3)  # P/R use binary relevance
+    none_rel = shrec17_metrics([[0.0]], [7], _DB, _DL, n=2)  # no relevant item anywhere
+    assert all(v == 0.0 for v in none_rel["micro"].values())
+    with pytest.raises(ValueError):
+        shrec17_metrics(_Q, _QL, _DB, _DL, query_sublabels=["a"] * 3)
+
+
+# --------------------------------------------------------------------------------- PR curve, PNG
+
+def test_pr_curve_eleven_point():
+    recall, precision = pr_curve(_Q[1:2], _QL[1:2], _DB, _DL)  # relevance 1 0 1 0
+    assert np.allclose(recall, np.linspace(0, 1, 11))
+    assert np.allclose(precision, [1.0] * 6 + [2 / 3] * 5)
+    _, p = pr_curve(_Q, _QL, _DB, _DL, points=3)  # levels 0, .5, 1 averaged over the 3 queries
+    assert np.allclose(p, [(2 / 3 + 1 + 1 / 2) / 3, (2 / 3 + 1 + 1 / 2) / 3, (2 / 3 + 2 / 3 + 1 / 2) / 3])
+    db, dl = np.array([[0.0], [1.0], [10.0], [11.0]]), np.array([0, 0, 1, 1])
+    assert np.allclose(pr_curve(db + 0.1, dl, db, dl)[1], 1.0)  # perfect rankings
+
+
+def test_pr_curve_png_magic(tmp_path):
+    curves = {"raw": pr_curve(_Q, _QL, _DB, _DL), "lfda": (np.linspace(0, 1, 5), np.linspace(1, 0.5, 5))}
+    path = pr_curve_png(curves, tmp_path / "sub" / "pr.png", title="PR")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError):
+        pr_curve_png({"bad": ([0, 1], [1])}, tmp_path / "bad.png")
