@@ -63,3 +63,21 @@ def test_modelnet40_point_formats(tmp_path, fmt):
     assert m["test_size"] > 0
     with pytest.raises(ValueError, match="point clouds only"):
         _run({"name": "modelnet40", "format": fmt, "root": str(root), "shape": "mesh"}, tmp_path)
+
+
+def test_shapenet_retrieval_reports_shrec17_metrics(tmp_path):
+    from test_shapenet import _tree
+
+    from mvtn_exp.engine.evaluation import evaluate_checkpoint
+    from mvtn_exp.schema import EvalConfig, RetrievalEvalConfig
+
+    root = _tree(tmp_path / "ShapeNetCore.v2")
+    _run({"name": "shapenet", "root": str(root), "shape": "points", "num_points": 128,
+          "cache_dir": str(tmp_path / "cache")}, tmp_path, batch_size=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        m = evaluate_checkpoint(EvalConfig(ckpt=str(tmp_path / "run" / "best.pt"), task="retrieval", progress=False,
+                                           retrieval=RetrievalEvalConfig(dim=4, list_length=3)), tmp_path / "eval")
+    shrec = m["retrieval"]["shrec17"]
+    assert shrec["N"] <= 3 and {"micro", "macro"} <= set(shrec)
+    assert all(0 <= shrec["micro"][k] <= 1 for k in shrec["micro"])
