@@ -326,13 +326,15 @@ class EvalConfig:
     """``mvtn-eval ckpt=PATH``: rebuild the model from the checkpoint's config, evaluate ``split``.
 
     ``task``: classification | retrieval; ``robustness``: none | rotation | occlusion (with
-    classification). ``device`` / ``batch_size``: null keeps the checkpoint's values. ``root``:
+    classification); ``views``: also analyse the predicted views (per-class histograms, cameras
+    around a shape, accuracy with per-class-averaged views). ``device`` / ``batch_size``: null keeps the checkpoint's values. ``root``:
     override the dataset root stored in the checkpoint (data moved)."""
 
     ckpt: Optional[str] = None
     split: str = "test"
     task: str = "classification"
     robustness: str = "none"
+    views: bool = False
     device: Optional[str] = None
     batch_size: Optional[int] = None
     root: Optional[str] = None

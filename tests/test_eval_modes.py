@@ -65,3 +65,12 @@ def test_cli_modes_and_bad_combination(ckpt, tmp_path):
                           "robustness=rotation", f"hydra.run.dir={tmp_path / 'b'}"],
                          capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert bad.returncode == 2 and "robustness" in bad.stderr
+
+
+def test_view_analysis(ckpt, tmp_path):
+    m = _eval(ckpt, tmp_path, views=True)
+    va = m["view_analysis"]
+    assert va["acc_per_instance"] == m["test_acc"] and 0 <= va["acc_class_mean_views"] <= 1
+    for name in ("view_histograms.png", "cameras.png"):
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG", name
+    assert "## Views" in (tmp_path / "results.md").read_text()

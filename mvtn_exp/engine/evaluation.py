@@ -81,6 +81,14 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
         seconds[mode] = time.perf_counter() - t0
         metrics.update(extra)
         tables.append(f"## {mode.capitalize()}\n\n{table}")
+    if ecfg.views:
+        from ..viz.views import view_analysis
+
+        t0 = time.perf_counter()
+        extra, table = view_analysis(model, loader, classes, run_dir, progress=ecfg.progress)
+        seconds["views"] = time.perf_counter() - t0
+        metrics.update(extra)
+        tables.append(f"## Views\n\n{table}")
     metrics["seconds"] = seconds
     (run_dir / "results.md").write_text("\n\n".join(tables) + "\n")
     write_results(run_dir, metrics)
