@@ -15,6 +15,7 @@ from tqdm.auto import tqdm
 from ..data.datasets import build_dataset
 from ..schema import EvalConfig, TrainConfig
 from ..tasks import classification, retrieval, robustness
+from ..viz.plots import occlusion_png
 from .trainer import eval_loader
 
 
@@ -62,28 +63,8 @@ def occlusion(model, loader, num_classes: int, ecfg: EvalConfig, run_dir: Path) 
         rows.append(f"| {ratio:g} | " + " | ".join(f"{per_dir[d]:.4f}" for d in dirs) + f" | {mean:.4f} |")
     table = ("| ratio | " + " | ".join(dirs) + " | mean |\n|---|" + "---|" * (len(dirs) + 1) + "\n"
              + "\n".join(rows))
-    _occlusion_png(out, run_dir / "occlusion.png")
+    occlusion_png(out, dirs, run_dir / "occlusion.png")
     return {"occlusion": out}, table
-
-
-def _occlusion_png(out: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ratios = [float(r) for r in out]
-    fig, ax = plt.subplots(figsize=(5, 3.5), dpi=100)
-    for d in robustness.DIRECTIONS:
-        ax.plot(ratios, [out[r]["per_direction"][d] for r in out], marker=".", lw=1, label=d)
-    ax.plot(ratios, [out[r]["mean_acc"] for r in out], color="black", lw=2, marker="o", label="mean")
-    ax.set_xlabel("occlusion ratio")
-    ax.set_ylabel("accuracy")
-    ax.set_ylim(0, 1)
-    ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
 
 
 @torch.no_grad()

@@ -295,11 +295,9 @@ def pr_curve(query_feats, query_labels, db_feats, db_labels, points: int = 11) -
 
 def pr_curve_png(curves: Mapping[str, tuple[Sequence[float], Sequence[float]]], path, title: str = "") -> Path:
     """``{label: (recall, precision)}`` -> one line per label on ``[0, 1]^2`` -> ``path`` (PNG)."""
-    import matplotlib
+    from ..viz.plots import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 4.5), dpi=100)
     for label, (recall, precision) in curves.items():
         recall, precision = np.asarray(recall, dtype=float), np.asarray(precision, dtype=float)
@@ -317,8 +315,4 @@ def pr_curve_png(curves: Mapping[str, tuple[Sequence[float], Sequence[float]]], 
     if title:
         ax.set_title(title, fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

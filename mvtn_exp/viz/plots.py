@@ -7,14 +7,46 @@ from typing import Sequence
 import numpy as np
 
 
-def confusion_png(confusion: Sequence[Sequence[int]], classes: Sequence[str], path, title: str = "") -> Path:
-    """Row-normalised confusion matrix (rows: true class, columns: predicted) with the counts
-    written in the cells -> ``path`` (PNG)."""
+def pyplot():
+    """matplotlib.pyplot with the Agg backend (no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def save_figure(fig, path) -> Path:
+    """Write ``fig`` as a PNG at ``path`` (folders created) and close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    pyplot().close(fig)
+    return path
+
+
+def occlusion_png(results: dict, directions: Sequence[str], path) -> Path:
+    """Accuracy vs occlusion ratio, one line per direction and the mean. ``results``:
+    ``{ratio_str: {"per_direction": {d: acc}, "mean_acc": acc}}``."""
+    plt = pyplot()
+    ratios = [float(r) for r in results]
+    fig, ax = plt.subplots(figsize=(5, 3.5), dpi=100)
+    for d in directions:
+        ax.plot(ratios, [results[r]["per_direction"][d] for r in results], marker=".", lw=1, label=d)
+    ax.plot(ratios, [results[r]["mean_acc"] for r in results], color="black", lw=2, marker="o", label="mean")
+    ax.set_xlabel("occlusion ratio")
+    ax.set_ylabel("accuracy")
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def confusion_png(confusion: Sequence[Sequence[int]], classes: Sequence[str], path, title: str = "") -> Path:
+    """Row-normalised confusion matrix (rows: true class, columns: predicted) with the counts
+    written in the cells -> ``path`` (PNG)."""
+    plt = pyplot()
     conf = np.asarray(confusion, dtype=np.int64)
     k = conf.shape[0]
     if conf.shape != (k, k) or len(classes) != k:
@@ -36,8 +68,4 @@ def confusion_png(confusion: Sequence[Sequence[int]], classes: Sequence[str], pa
     if title:
         ax.set_title(title, fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

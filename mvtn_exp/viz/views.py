@@ -28,6 +28,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .images import view_grid
+from .plots import pyplot, save_figure
 
 
 def _np(x) -> np.ndarray:
@@ -55,24 +56,6 @@ def fold_views(azim, elev) -> tuple[np.ndarray, np.ndarray]:
     return wrap_azimuth(a), e
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path) -> Path:
-    plt = _plt()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
-
-
 def view_histograms_png(azim, elev, labels, classes: Sequence[str], path, bins: int = 36) -> Path:
     """Per-class histograms of the predicted views -> ``path`` (PNG).
 
@@ -86,7 +69,7 @@ def view_histograms_png(azim, elev, labels, classes: Sequence[str], path, bins: 
     if a.shape != e.shape or a.shape[0] != lab.shape[0]:
         raise ValueError(f"view_histograms_png: azim {a.shape}, elev {e.shape} and labels {lab.shape} disagree")
     k = len(classes)
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(k, 2, figsize=(6.0, max(1.6, 1.1 * k + 0.6)), dpi=100, squeeze=False)
     a_bins = np.linspace(-180.0, 180.0, bins + 1)
     e_bins = np.linspace(-90.0, 90.0, bins // 2 + 1)
@@ -105,7 +88,7 @@ def view_histograms_png(azim, elev, labels, classes: Sequence[str], path, bins: 
     axes[0, 0].set_title("azimuth (deg)", fontsize=8)
     axes[0, 1].set_title("elevation (deg, folded)", fontsize=8)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def camera_positions(azim, elev, dist) -> np.ndarray:
@@ -126,7 +109,7 @@ def cameras_png(points, azim, elev, dist, images, path, title: str = "") -> Path
     M = cams.shape[0]
     if imgs.dim() != 4 or imgs.shape[0] != M:
         raise ValueError(f"cameras_png: images {tuple(imgs.shape)} do not match {M} views")
-    plt = _plt()
+    plt = pyplot()
     fig = plt.figure(figsize=(max(4.5, 1.3 * M), 6.0), dpi=100)
     ax = fig.add_axes([0.05, 0.3, 0.9, 0.65], projection="3d")
     # our (x, y, z) with Y up -> matplotlib (x, z, y) so that the plot's vertical axis is our y
@@ -150,7 +133,7 @@ def cameras_png(points, azim, elev, dist, images, path, title: str = "") -> Path
     bottom = fig.add_axes([0.02, 0.02, 0.96, 0.25])
     bottom.imshow(view_grid(imgs, cols=M))
     bottom.set_axis_off()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def class_mean_views(azim, elev, labels, num_classes: int) -> tuple[torch.Tensor, torch.Tensor]:
