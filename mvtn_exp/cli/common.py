@@ -114,7 +114,7 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
         return
     from hydra import compose, initialize_config_module
 
-    overrides = [a for a in argv if a not in MULTIRUN_FLAGS and not a.lstrip("+~").startswith("hydra.")]
+    overrides = [a for a in argv if a not in MULTIRUN_FLAGS and not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     choices: dict = {}
     try:
         variants = sweep_variants(overrides) if any(a in MULTIRUN_FLAGS for a in argv) else [overrides]
