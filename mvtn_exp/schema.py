@@ -277,6 +277,9 @@ class TrainConfig:
         for key in ("views", "image_size", "epochs", "batch_size"):
             at_least(key, getattr(self, key), 1)
         at_least("seed", self.seed, 0)
+        if self.selector.learned and self.batch_size < 2:
+            raise ValueError(f"batch_size={self.batch_size}: a learned selector (BatchNorm in G) trains on batches "
+                             "of at least 2 shapes")
         if not (self.device == "cpu" or self.device.startswith("cuda")):
             raise ValueError(f"device={self.device!r}: expected cpu, cuda or cuda:N")
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
@@ -349,6 +352,8 @@ class EvalConfig:
         one_of("split", self.split, ("train", "val", "test"))
         one_of("task", self.task, EVAL_TASKS)
         one_of("robustness", self.robustness, ROBUSTNESS)
+        if self.task == "retrieval" and self.split == "train":
+            raise ValueError("split=train: retrieval queries the train split as its database; use split=test or val")
         if self.task == "retrieval" and self.robustness != "none":
             raise ValueError(f"robustness={self.robustness}: robustness is evaluated with task=classification")
         if self.batch_size is not None:

@@ -74,3 +74,8 @@ def test_view_analysis(ckpt, tmp_path):
     for name in ("view_histograms.png", "cameras.png"):
         assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG", name
     assert "## Views" in (tmp_path / "results.md").read_text()
+
+
+def test_retrieval_refuses_the_train_split(ckpt, tmp_path):
+    with pytest.raises(ValueError, match="split=train"):
+        _eval(ckpt, tmp_path, task="retrieval", split="train")

@@ -298,3 +298,36 @@ def test_nonfinite_loss_stops_run(cache, tmp_path, monkeypatch):
     with pytest.raises(TrainingDiverged, match="non-finite loss"):
         train(tiny(cache, epochs=1), tmp_path)
     assert not (tmp_path / "last.pt").exists() and not list(tmp_path.glob("*.tmp"))
+
+
+def test_resume_from_last_pt_alone(cache, full_run, tmp_path):
+    """Only last.pt travelled (no best.pt beside it): model selection restarts, the run completes."""
+    import shutil
+
+    run, _ = full_run
+    lone = tmp_path / "moved"
+    lone.mkdir()
+    state = torch.load(run / "last.pt", weights_only=False)
+    state["epoch"] = 0  # pretend epoch 1 of 2 was the last one written
+    save_atomic(lone / "last.pt", state)
+    m = train(tiny(cache, ckpt_path=str(lone / "last.pt")), tmp_path / "resumed")
+    assert (tmp_path / "resumed" / "best.pt").is_file() and m["best_epoch"] == 2
+    # and with nothing left to train, the last model is tested
+    shutil.copyfile(run / "last.pt", lone / "last.pt")
+    m2 = train(tiny(cache, ckpt_path=str(lone / "last.pt")), tmp_path / "done")
+    assert m2["test_size"] == 24 and (tmp_path / "done" / "best.pt").is_file()
+
+
+def test_resume_refuses_other_classes(cache, full_run, tmp_path):
+    run, _ = full_run
+    state = torch.load(run / "last.pt", weights_only=False)
+    state["classes"] = list(reversed(state["classes"]))
+    save_atomic(tmp_path / "other.pt", state)
+    with pytest.raises(CheckpointMismatch, match="classes"):
+        train(tiny(cache, ckpt_path=str(tmp_path / "other.pt")), tmp_path / "x")
+
+
+def test_learned_selector_needs_batches_of_two(cache, tmp_path):
+    with pytest.raises(ValueError, match="batch_size=1"):
+        as_config(tiny(cache, batch_size=1))
+    assert as_config(tiny(cache, batch_size=1, **{"selector.name": "circular"})).batch_size == 1

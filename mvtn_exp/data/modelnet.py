@@ -8,7 +8,9 @@ per shape (seeded by the file name), so evaluation is deterministic. A shape tha
 path and skipped (counted; listed in the cache's ``skipped`` record), or raises with ``strict``.
 
 Cache: ``<cache_dir>/<dataset>_<split>_<key>.npz`` (packed arrays, ``packed.py``), ``key`` hashing
-every setting and the preprocessing version. Shapes are first written one by one into a
+every setting and the preprocessing version. One process at a time builds a given cache (two runs
+started together on a cold cache would race on its ``.parts`` folder): prepare it first with
+``mvtn-prepare`` before launching parallel jobs. Shapes are first written one by one into a
 ``.parts`` folder beside it, so an interrupted run resumes without redoing finished shapes; the
 packed file is written atomically at the end and the parts removed.
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
@@ -26,7 +27,8 @@ def _overrides(job_dir: Path) -> list[str]:
 def collect(sweep_dir) -> list[dict]:
     """One row per job folder under ``sweep_dir``: its overrides, status and metrics."""
     rows = []
-    for job in sorted(p for p in Path(sweep_dir).iterdir() if p.is_dir() and not p.name.startswith(".")):
+    jobs = [p for p in Path(sweep_dir).iterdir() if p.is_dir() and not p.name.startswith(".")]
+    for job in sorted(jobs, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]):
         if not (job / ".hydra").is_dir():
             continue
         row = {"job": job.name, "overrides": _overrides(job)}

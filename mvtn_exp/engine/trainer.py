@@ -162,6 +162,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
                 opt.zero_grad(set_to_none=True)
                 log.warning("epoch %d step %d: non-finite gradients, step skipped", epoch + 1, step + 1)
                 step += 1
+                timer.step_done()  # its time was spent: count the step in the per-step means
                 continue
             c_norm = _grad_norm(groups["mvnet"])
             g_norm = 0.0
@@ -242,9 +243,15 @@ def train(cfg, run_dir) -> dict:
 
     start, best_acc, best_epoch, skipped, history, step = 0, -1.0, -1, 0, [], 0
     if resume is not None:
+        if list(resume.get("classes", classes)) != classes:
+            raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
+                                                f"{resume['classes']} but the dataset has {classes}")
         _resume(cfg, run_dir, model, opt, sched, resume)
         start = int(resume["epoch"]) + 1
         best_acc, best_epoch = float(resume["best_val_acc"]), int(resume["best_epoch"])
+        if not (run_dir / "best.pt").is_file():  # best.pt did not travel with last.pt: select anew
+            log.warning("no best.pt beside %s: model selection starts again from the resumed epoch", cfg.ckpt_path)
+            best_acc, best_epoch = -1.0, -1
         skipped, history, step = int(resume["skipped_steps"]), list(resume["history"]), int(resume.get("step", 0))
 
     def payload(epoch):
@@ -292,6 +299,10 @@ def train(cfg, run_dir) -> dict:
                   f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | {seconds:.1f}s",
                   flush=True)
 
+        if not (run_dir / "best.pt").is_file():  # resumed at the last epoch without a best.pt
+            log.warning("no best.pt in %s: testing the last model", run_dir)
+            best_acc, best_epoch = history[-1]["val_acc"] if history else -1.0, start - 1
+            checkpoint.save_atomic(run_dir / "best.pt", payload(start - 1))
         best = checkpoint.load(run_dir / "best.pt", map_location=device)
         model.load_state_dict(best["model"])
         test = classification.evaluate(model, loaders["test"], len(classes), desc="test",
