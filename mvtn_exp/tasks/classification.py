@@ -30,12 +30,13 @@ def summarize(confusion: Tensor) -> dict:
 @torch.no_grad()
 def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool = True, transform=None) -> dict:
     """Eval mode (renderer: camera light, white object): loss, ``summarize`` metrics, the confusion
-    matrix as nested lists, and the predicted views ``azim`` / ``elev`` ``[N, M]`` (degrees, CPU).
+    matrix as nested lists, the predicted views ``azim`` / ``elev`` ``[N, M]`` (degrees, CPU) and the
+    ``labels [N]`` in the same order.
     ``transform(batch) -> batch`` (e.g. a rotation or a crop) is applied to every batch first, so
     the selector and the renderer both see the transformed shapes."""
     model.eval()
     conf = torch.zeros(num_classes, num_classes, dtype=torch.long)
-    loss_sum, azim, elev = 0.0, [], []
+    loss_sum, azim, elev, seen = 0.0, [], [], []
     first_images = None
     for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
         if transform is not None:
@@ -45,6 +46,7 @@ def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool
         loss_sum += float(nn.functional.cross_entropy(out["logits"], labels, reduction="sum"))
         pred = out["logits"].argmax(1).cpu()
         conf.index_put_((batch["labels"], pred), torch.ones_like(pred), accumulate=True)
+        seen.append(batch["labels"])
         azim.append(out["azim"].cpu())
         elev.append(out["elev"].cpu())
         if first_images is None:
@@ -52,5 +54,6 @@ def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool
     result = summarize(conf)
     result.update(loss=loss_sum / max(result["n"], 1), confusion=conf.tolist(),
                   azim=torch.cat(azim) if azim else torch.zeros(0), elev=torch.cat(elev) if elev else torch.zeros(0),
+                  labels=torch.cat(seen) if seen else torch.zeros(0, dtype=torch.long),
                   images=first_images)
     return result

@@ -206,7 +206,7 @@ def view_analysis(model, loader, classes: Sequence[str], run_dir, progress: bool
     run_dir.mkdir(parents=True, exist_ok=True)
     k = len(classes)
     res = classification.evaluate(model, loader, k, desc="views (per instance)", progress=progress)
-    labels = torch.cat([b["labels"] for b in loader]) if res["n"] else torch.zeros(0, dtype=torch.long)
+    labels = res["labels"]
     view_histograms_png(res["azim"], res["elev"], labels, list(classes), run_dir / "view_histograms.png")
 
     first = next(iter(loader))
