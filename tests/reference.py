@@ -26,9 +26,13 @@ def _seg_sqdist(p, a, b):
     return (d * d).sum(1)
 
 
-def dense_face_search(xy, z, image, *, H, W, K, blur, znear, cull_backfaces, area_eps, num_images):
-    """xy ``[N, 3, 2]`` NDC, z ``[N, 3]``, image ``[N]`` -> Selection (same contract as search_faces):
-    per pixel, faces covering it first, then faces within ``blur``; each group by (depth, index)."""
+def dense_face_search(xy, z, image, *, H, W, K, blur, znear, cull_backfaces, area_eps, num_images, ranking=None):
+    """xy ``[N, 3, 2]`` NDC, z ``[N, 3]``, image ``[N]`` -> Selection (same contract as search_faces).
+
+    Hard (blur 0): per pixel the covering faces by (depth, index). Soft: every face within
+    ``blur``, by (minus the blend logit, index), the logit ``zinv / gamma + log p`` with log p = 0
+    for covering faces and ``log sigmoid(-d^2 / sigma)`` otherwise (``ranking``, a SoftRanking).
+    K=None keeps every candidate in the slots (the unlimited-K reference)."""
     xy = xy.detach().double().cpu().numpy()
     z = z.detach().double().cpu().numpy()
     image = image.cpu().numpy()
@@ -50,9 +54,17 @@ def dense_face_search(xy, z, image, *, H, W, K, blur, znear, cull_backfaces, are
         lam = np.where(inside[:, None], lam, np.clip(lam, 0, None))
         lam = lam / lam.sum(1, keepdims=True)
         depth = 1.0 / (lam / z[f]).sum(1)
+        if blur > 0 and ranking.by_depth:
+            key = depth
+        elif blur > 0:
+            zf, zn = float(ranking.zfar[image[f]]), float(ranking.znear[image[f]])
+            log_p = np.where(inside, 0.0, -np.logaddexp(0.0, d2 / ranking.sigma))
+            key = -((zf - depth) / (zf - zn) / ranking.gamma + log_p)
+        else:
+            key = depth
         base = image[f] * H * W
         for p in np.nonzero(ok)[0]:
-            cands[base + p].append((not inside[p], depth[p], f))
+            cands[base + p].append((key[p], f))
     return _to_selection(cands, K)
 
 
@@ -67,16 +79,24 @@ def dense_point_search(xy, z, image, *, H, W, K, radius, znear, num_images):
             continue
         d2 = (px - xy[n, 0]) ** 2 + (py - xy[n, 1]) ** 2
         for p in np.nonzero(d2 < radius * radius)[0]:
-            cands[image[n] * H * W + p].append((False, z[n], n))
+            cands[image[n] * H * W + p].append((z[n], n))
     return _to_selection(cands, K)
 
 
 def _to_selection(cands, K) -> tiles.Selection:
-    pix, prim = [], []
+    """Per pixel, sorted candidates -> the first K as slots and the others as the rest."""
+    if K is None:
+        K = max(1, max(len(c) for c in cands))
+    pix, prim, rest_pix, rest_prim = [], [], [], []
     for p, c in enumerate(cands):
         if c:
             c.sort()
-            ids = [f for *_, f in c[:K]]
+            ids = [f for *_, f in c]
             pix.append(p)
-            prim.append(ids + [-1] * (K - len(ids)))
-    return tiles.Selection(torch.tensor(pix, dtype=torch.long), torch.tensor(prim, dtype=torch.long).reshape(-1, K))
+            prim.append(ids[:K] + [-1] * (K - len(ids[:K])))
+            rest_pix += [p] * len(ids[K:])
+            rest_prim += ids[K:]
+    long = dict(dtype=torch.long)
+    return tiles.Selection(torch.tensor(pix, **long), torch.tensor(prim, **long).reshape(-1, K),
+                           torch.tensor(rest_pix, **long), torch.tensor(rest_prim, **long),
+                           max((len(c) for c in cands), default=0))

@@ -16,11 +16,13 @@ def _search_both(r: MultiViewRenderer, meshes, dist):
     azim, elev = VIEWS
     pf, _, _ = r.project_faces(meshes, azim, elev, dist)
     H = c.image_size
+    ranking = r.soft_ranking(torch.full_like(azim, dist))
     sel = mesh_raster.search_faces(pf, H=H, W=H, K=c.effective_k(), blur_radius=c.effective_blur(),
-                                   tile_size=c.tile_size, max_candidates=c.max_candidates)
+                                   tile_size=c.tile_size, max_candidates=c.max_candidates, ranking=ranking)
     ref = reference.dense_face_search(
         pf.xy, pf.z, pf.image, H=H, W=H, K=c.effective_k(), blur=c.effective_blur(), znear=c.znear,
-        cull_backfaces=c.cull_backfaces, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, H), num_images=azim.numel())
+        cull_backfaces=c.cull_backfaces, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, H), num_images=azim.numel(),
+        ranking=ranking)
     return sel, ref
 
 
@@ -28,6 +30,10 @@ def _assert_same(sel, ref):
     assert len(ref.pix) > 0
     assert torch.equal(sel.pix, ref.pix)
     assert torch.equal(sel.prim, ref.prim)
+    if sel.rest_pix is not None:  # the candidates beyond the K slots: the same (pixel, face) pairs
+        got = sorted(zip(sel.rest_pix.tolist(), sel.rest_prim.tolist()))
+        assert got == sorted(zip(ref.rest_pix.tolist(), ref.rest_prim.tolist()))
+        assert sel.most == ref.most
 
 
 @pytest.mark.parametrize("tile_size,max_candidates", [(8, 1 << 24), (8, 64), (5, 200), (32, 1)])
@@ -58,9 +64,10 @@ def test_soft_images_match_dense(monkeypatch, shading):
     r = MultiViewRenderer(image_size=20, mode="soft", shading=shading, faces_per_pixel=4, sigma=1e-3, gamma=1e-2, tile_size=6)
     out = r(meshes, *VIEWS, 2.5)
 
-    def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates):
+    def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates, ranking):
         return reference.dense_face_search(pf.xy, pf.z, pf.image, H=H, W=W, K=K, blur=blur_radius, znear=r.cfg.znear,
-                                           cull_backfaces=False, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, W), num_images=3)
+                                           cull_backfaces=False, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, W), num_images=3,
+                                           ranking=ranking)
 
     monkeypatch.setattr(mesh_raster, "search_faces", dense)
     ref = r(meshes, *VIEWS, 2.5)
@@ -96,3 +103,47 @@ def test_batch_of_ragged_meshes_equals_one_by_one():
     for i, m in enumerate((a, b)):
         single = r(m, azim[i:i + 1], elev[i:i + 1], 2.5).images
         assert torch.allclose(out[i:i + 1], single, atol=1e-6)
+
+
+def _torus(sections: int, open_half: bool):
+    import numpy as np
+    import trimesh
+
+    t = trimesh.creation.torus(major_radius=0.7, minor_radius=0.3, major_sections=sections, minor_sections=sections)
+    v, f = np.asarray(t.vertices), np.asarray(t.faces)
+    if open_half:  # an open mesh: its boundary is a silhouette from every direction
+        f = f[v[f][:, :, 2].mean(1) >= 0]
+    return Meshes.from_list([torch.tensor(v, dtype=torch.float32)], [torch.tensor(f, dtype=torch.long)])
+
+
+@pytest.mark.parametrize("shading,open_half,slots", [
+    ("silhouette", False, "logit"), ("flat", False, "logit"), ("smooth", False, "logit"),
+    ("silhouette", True, "logit"), ("smooth", True, "logit"), ("smooth", False, "depth"),
+])
+def test_soft_edges_match_unlimited_k(monkeypatch, shading, open_half, slots):
+    # a 32 x 32 torus (2k faces) at 48 px with a blur of about two pixels: rim pixels have more
+    # faces within the blur radius than K = 3 slots. Against the dense reference that keeps every
+    # face (K unlimited): coverage must not depend on K at all, and colour may miss only the
+    # smallest softmax weights. PyTorch3D's choice (soft_slots=depth) fails this.
+    meshes = _torus(32, open_half)
+    azim, elev = torch.tensor([[20.0, 200.0]]), torch.tensor([[35.0, -60.0]])
+    r = MultiViewRenderer(image_size=48, mode="soft", shading=shading, faces_per_pixel=3, sigma=1e-3, soft_slots=slots)
+    out = r(meshes, azim, elev, 2.2)
+    assert out.stats["max_candidates"] > 3 * 3, "the scene must have rims with many more faces than slots"
+
+    def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates, ranking):
+        return reference.dense_face_search(pf.xy, pf.z, pf.image, H=H, W=W, K=None, blur=blur_radius, znear=r.cfg.znear,
+                                           cull_backfaces=False, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, W),
+                                           num_images=2, ranking=ranking)
+
+    monkeypatch.setattr(mesh_raster, "search_faces", dense)
+    ref = r(meshes, azim, elev, 2.2)
+    edge = (ref.alpha > 1e-3) & (ref.alpha < 1 - 1e-3)
+    assert int(edge.sum()) > 100
+    cov_off = ((out.alpha - ref.alpha).abs() > 0.02)[edge].float().mean()
+    rgb_off = ((out.images - ref.images).abs().amax(2, keepdim=True) > 0.02)[edge].float().mean()
+    if slots == "depth":
+        assert cov_off > 0.05
+        return
+    assert (out.alpha - ref.alpha).abs().max() < 1e-5
+    assert cov_off == 0 and rgb_off < 0.01

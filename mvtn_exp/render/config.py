@@ -9,6 +9,7 @@ SHADINGS = ("flat", "smooth", "silhouette")
 LIGHTS = ("camera", "fixed", "random")
 COLORS = ("white", "fixed", "random")
 COMPOSITORS = ("alpha", "norm")
+SOFT_SLOTS = ("logit", "depth")
 
 
 @dataclass
@@ -38,6 +39,9 @@ class RendererConfig:
     sigma: float = 1e-4
     gamma: float = 1e-4
     blur_radius: float | None = None
+    # which K faces hold a pixel's soft slots: "logit" (largest blend weights; coverage counts
+    # every face within the blur radius) or "depth" (PyTorch3D's: the K nearest; coverage from them)
+    soft_slots: str = "logit"
     cull_backfaces: bool = False
     light: str = "camera"
     train_light: str = "random"
@@ -74,6 +78,7 @@ class RendererConfig:
         one_of("color", COLORS)
         one_of("train_color", COLORS)
         one_of("compositor", COMPOSITORS)
+        one_of("soft_slots", SOFT_SLOTS)
         checks = {
             "image_size": self.image_size >= 1,
             "faces_per_pixel": self.faces_per_pixel >= 1,

@@ -11,6 +11,7 @@ Faces crossing the near plane are culled, not clipped (documented limitation).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -134,11 +135,42 @@ def face_planes(x0, y0, x1, y1, x2, y2) -> list[torch.Tensor]:
     return out
 
 
-def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int) -> tiles.Selection:
-    """K nearest faces per pixel among faces whose triangle is within ``blur_radius`` (NDC).
+@dataclass
+class SoftRanking:
+    """How soft mode ranks a pixel's candidates: by the blend logit ``log p + zinv / gamma``
+    (or by depth alone when ``by_depth``).
 
-    Faces covering the pixel rank before faces that are only within the blur radius (each group
-    by depth), so blur never evicts the surface that is actually there.
+    zfar, znear: ``[num_images]`` the scene depth range of each image (as in ``softmax_blend``);
+    sigma, gamma: the blend's. In the search, ``log p`` of a covering face is taken as 0 (its
+    true value lies in [log 1/2, 0]); for the others it is ``logsigmoid(-d^2 / sigma)``.
+    """
+
+    zfar: torch.Tensor
+    znear: torch.Tensor
+    sigma: float
+    gamma: float
+    by_depth: bool = False  # PyTorch3D's choice (renderer.soft_slots=depth): the K nearest, no rest
+
+    def score(self, image: torch.Tensor, depth: torch.Tensor, sqdist: torch.Tensor | None) -> torch.Tensor:
+        """Minus the logit of candidates ``[C]`` (smaller is better); sqdist None: all covering."""
+        if self.by_depth:
+            return depth
+        zf = self.zfar.index_select(0, image)
+        zinv = (zf - depth) / (zf - self.znear.index_select(0, image)).clamp(min=1e-12)
+        logit = zinv / self.gamma
+        if sqdist is not None:
+            logit = logit + torch.nn.functional.logsigmoid(-sqdist / self.sigma)
+        return -logit
+
+
+def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int,
+                 ranking: SoftRanking | None = None) -> tiles.Selection:
+    """K best faces per pixel among faces whose triangle is within ``blur_radius`` (NDC).
+
+    Hard mode (``blur_radius == 0``): the K nearest covering faces. Soft mode: the K faces of
+    largest blend logit (``ranking``), i.e. the K largest colour weights; the other candidates
+    come back as ``rest_pix`` / ``rest_prim`` so that coverage can count every face within the
+    blur radius, whatever K is.
     """
     with torch.no_grad():
         x0, y0, z0, x1, y1, z1, x2, y2, z2 = pf.cols
@@ -193,6 +225,8 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
                 picks.append(tiles.select_nearest(cand.pix[keep], depth, fv.index_select(0, cand.prim[keep]), K, num_pixels))
             return tiles.merge(picks, K, pf.cols.device)
         # soft mode: candidates within the dilated span, tested exactly against the blur radius
+        if ranking is None:
+            raise ValueError("search_faces: soft mode (blur_radius > 0) needs a SoftRanking")
         xy = torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2)
         for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, small_box):
             cand = tiles.concat(parts)
@@ -203,12 +237,17 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
             near = inside.clone()
             out_idx = torch.nonzero(~inside).squeeze(1)
             fo = xy.index_select(0, cand.prim[out_idx])
-            near[out_idx] = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x[out_idx], cand.y[out_idx]) <= blur_radius**2
+            sqd = torch.full_like(cand.x, -FAR_SQ)  # covering: log p taken as 0 in the ranking
+            sqd[out_idx] = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x[out_idx], cand.y[out_idx])
+            near[out_idx] = sqd[out_idx] <= blur_radius**2
             keep = torch.nonzero(near).squeeze(1)
             lam = lam[keep].clamp(min=0)
             lam = lam / lam.sum(1, keepdim=True)
             depth = 1.0 / (lam * t[keep, 9:12]).sum(1).clamp(min=1e-12)
-            picks.append(tiles.select_nearest(cand.pix[keep], depth, fv.index_select(0, cand.prim[keep]), K, num_pixels, ~inside[keep]))
+            pk = cand.pix[keep]
+            score = ranking.score(torch.div(pk, H * W, rounding_mode="floor"), depth, sqd[keep])
+            picks.append(tiles.select_nearest(pk, score, fv.index_select(0, cand.prim[keep]), K, num_pixels,
+                                              keep_rest=not ranking.by_depth))
         return tiles.merge(picks, K, pf.cols.device)
 
 
@@ -276,3 +315,33 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
     zbuf = torch.where(valid, 1.0 / zsum, torch.zeros_like(zsum))
     bary = zinv / zsum.unsqueeze(-1) if need_bary else None
     return Fragments(sel.pix, sel.prim, valid, bary, zbuf, dist)
+
+
+def saturated_log_miss(dtype: torch.dtype) -> float:
+    """``log prod (1 - p)`` below which soft coverage ``1 - prod (1 - p)`` rounds to exactly 1."""
+    return math.log(torch.finfo(dtype).eps) - 1.0
+
+
+def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, frag: Fragments, *, H: int, W: int, sigma: float,
+                  interior_edge: torch.Tensor | None) -> torch.Tensor:
+    """Coverage of the candidates beyond the K slots: ``sum log(1 - p)`` per active pixel ``[P]``.
+
+    Soft coverage is ``1 - prod (1 - p)`` over *every* face within the blur radius, not only the
+    K that hold colour slots, so it does not depend on K. Only pixels whose slots leave the
+    coverage below 1 in this dtype need the rest (silhouette rims, occlusion contours); there the
+    rest is recomputed differentiably, flat (one face per entry). Elsewhere it is 0.
+    """
+    P = len(sel.pix)
+    out = torch.zeros(P, dtype=pf.vert_xy.dtype, device=pf.vert_xy.device)
+    if sel.rest_pix is None or len(sel.rest_pix) == 0:
+        return out
+    with torch.no_grad():
+        slots = torch.where(frag.valid, torch.nn.functional.logsigmoid(frag.dist / sigma), torch.zeros_like(frag.dist)).sum(1)
+        rim = slots > saturated_log_miss(slots.dtype)
+        owner = torch.searchsorted(sel.pix, sel.rest_pix)
+        keep = torch.nonzero(rim.index_select(0, owner)).squeeze(1)
+    if len(keep) == 0:
+        return out
+    rest = tiles.Selection(sel.rest_pix.index_select(0, keep), sel.rest_prim.index_select(0, keep).unsqueeze(1))
+    d = face_fragments(pf, rest, H=H, W=W, need_bary=False, need_dist=True, interior_edge=interior_edge).dist[:, 0]
+    return out.index_add(0, owner.index_select(0, keep), torch.nn.functional.logsigmoid(d / sigma))

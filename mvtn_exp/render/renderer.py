@@ -126,15 +126,19 @@ class MultiViewRenderer(nn.Module):
         K = c.effective_k()
         pf, _, C = self.project_faces(meshes, azim, elev, dist)
         alive, facing = pf.alive, pf.facing
-        sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates)
-        stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix))
-        interior = None
+        ranking = self.soft_ranking(dist.to(verts.dtype))
+        sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates,
+                                       ranking=ranking)
+        stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix), max_candidates=sel.most)
+        interior = rest = None
         if c.soft:
             interior = self._interior_edges(meshes.faces, facing, M)
         frag = mesh_raster.face_fragments(pf, sel, H=H, W=W, need_bary=c.shading == "smooth", need_dist=c.soft, interior_edge=interior)
+        if c.soft:
+            rest = mesh_raster.rest_log_miss(pf, sel, frag, H=H, W=W, sigma=c.sigma, interior_edge=interior)
         if c.shading == "silhouette":
             if c.soft:
-                alpha = shading.coverage(frag.dist, frag.valid, c.sigma)
+                alpha = shading.coverage(frag.dist, frag.valid, c.sigma, rest)
             else:
                 alpha = frag.valid[:, 0].to(verts.dtype)
             bg = self._background(verts)
@@ -143,13 +147,24 @@ class MultiViewRenderer(nn.Module):
             colors = self._face_colors(meshes, frag, B, M, C)
             if c.soft:
                 img_of_pix = frag.pix // (H * W)
-                d = take(dist.reshape(-1).to(verts.dtype), img_of_pix)
-                zfar, znear = d + 1.0, (d - 1.0).clamp(min=c.znear)
-                rgb, alpha = shading.softmax_blend(colors, frag.dist, frag.zbuf, frag.valid, zfar, znear, self._background(verts), sigma=c.sigma, gamma=c.gamma)
+                rgb, alpha = shading.softmax_blend(colors, frag.dist, frag.zbuf, frag.valid, take(ranking.zfar, img_of_pix), take(ranking.znear, img_of_pix),
+                                                   self._background(verts), sigma=c.sigma, gamma=c.gamma, rest=rest)
             else:
                 rgb, alpha = shading.hard_blend(colors, frag.valid)
         images, alpha = self._compose(frag.pix, rgb, alpha, B, M, H, W, verts)
         return RenderOutput(images, alpha, stats)
+
+    def soft_ranking(self, dist: torch.Tensor) -> mesh_raster.SoftRanking | None:
+        """How soft mode ranks faces for views at camera distances ``dist`` ``[B, M]`` (None in hard mode).
+
+        The per-image depth range of a unit-sphere shape is [dist - 1, dist + 1] (near end clamped
+        at ``znear``): the same range normalises depth in the search and in ``softmax_blend``.
+        """
+        c = self.cfg
+        if not c.soft:
+            return None
+        d = dist.reshape(-1)
+        return mesh_raster.SoftRanking(d + 1.0, (d - 1.0).clamp(min=c.znear), c.sigma, c.gamma, c.soft_slots == "depth")
 
     def project_faces(self, meshes: Meshes, azim, elev, dist):
         """Project and cull all faces for all views -> (ProjectedFaces, Cameras, camera centres ``[B*M, 3]``)."""

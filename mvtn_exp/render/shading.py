@@ -44,20 +44,29 @@ def hard_blend(colors: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor,
     return colors[:, 0], valid[:, 0].to(colors.dtype)
 
 
-def coverage(dist: torch.Tensor, valid: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Soft silhouette ``1 - prod_k (1 - sigmoid(-d_k / sigma))`` from signed squared distances ``[P, K]``."""
+def coverage(dist: torch.Tensor, valid: torch.Tensor, sigma: float, rest: torch.Tensor | None = None) -> torch.Tensor:
+    """Soft silhouette ``1 - prod (1 - sigmoid(-d / sigma))`` from signed squared distances ``[P, K]``.
+
+    rest: optional ``[P]`` ``sum log(1 - p)`` of the faces within the blur radius that hold no
+    slot (``mesh_raster.rest_log_miss``), so the product runs over every face, whatever K is.
+    """
     log_miss = F.logsigmoid(dist / sigma)  # log(1 - p_k)
-    log_miss = torch.where(valid, log_miss, torch.zeros_like(log_miss))
-    return -torch.expm1(log_miss.sum(-1))
+    log_miss = torch.where(valid, log_miss, torch.zeros_like(log_miss)).sum(-1)
+    if rest is not None:
+        log_miss = log_miss + rest
+    return -torch.expm1(log_miss)
 
 
-def softmax_blend(colors, dist, zbuf, valid, zfar, znear, background, *, sigma: float, gamma: float):
+def softmax_blend(colors, dist, zbuf, valid, zfar, znear, background, *, sigma: float, gamma: float, rest=None):
     """SoftRas-style depth blend of the K slots, composited over the background by soft coverage.
 
     colors ``[P, K, 3]``; dist, zbuf, valid ``[P, K]``; zfar, znear ``[P]`` per-pixel scene depth
     range; background ``[3]``. Surface colour: softmax over the slots of ``p_k exp(zinv_k / gamma)``
     (log space) with ``p_k = sigmoid(-d_k / sigma)`` and ``zinv = (zfar - z) / (zfar - znear)``.
-    Image: ``alpha * surface + (1 - alpha) * background`` with ``alpha = 1 - prod_k (1 - p_k)``.
+    Image: ``alpha * surface + (1 - alpha) * background`` with ``alpha = 1 - prod (1 - p)`` over
+    every face within the blur radius (the slots and ``rest``, see ``coverage``). The slots hold
+    the K largest logits (``mesh_raster.search_faces``), so the colour misses only the smallest
+    weights of the softmax.
 
     Why not SoftRas's background slot (weight ``exp(eps / gamma)``): at a small gamma it has no
     weight next to any face (measured: exactly 0 at every partly covered edge pixel with
@@ -70,7 +79,7 @@ def softmax_blend(colors, dist, zbuf, valid, zfar, znear, background, *, sigma: 
     logit = torch.where(valid, logit, torch.full_like(logit, NEG))
     w = torch.softmax(logit, 1)
     surface = (w[:, :, None] * colors).sum(1)
-    alpha = coverage(dist, valid, sigma)
+    alpha = coverage(dist, valid, sigma, rest)
     rgb = alpha[:, None] * surface + (1 - alpha[:, None]) * background
     return rgb.clamp(0, 1), alpha  # clamp: rounding can exceed 1 by an ulp
 

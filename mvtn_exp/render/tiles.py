@@ -12,7 +12,8 @@ How a scene is searched:
    ``tile_size`` square screen tiles (packed bins: a tile holds as many primitives as cover it, so
    nothing is ever dropped) and processed in chunks of whole tiles, each under the budget; a
    single tile over budget is processed alone and reported once with a warning;
-4. per pixel, the K candidates of smallest depth win (ties: smaller primitive index first).
+4. per pixel, the K candidates of smallest score win (ties: smaller primitive index first); the
+   score is the depth in hard mode and minus the blend logit in soft mode.
 
 Pixel convention: image row i (top = 0), column j; pixel centre in NDC is
 ``x = (2j + 1) / W - 1``, ``y = 1 - (2i + 1) / H``. Flat pixel index: ``(image * H + i) * W + j``.
@@ -43,13 +44,18 @@ class PixelBoxes:
 
 @dataclass
 class Selection:
-    """K nearest primitives for every pixel that has at least one.
+    """K best primitives for every pixel that has at least one.
 
     pix: ``[P]`` flat pixel index, ascending; prim: ``[P, K]`` primitive index, -1 in unused slots.
+    rest_pix, rest_prim: ``[R]`` the candidates that did not get a slot (only when asked for:
+    soft coverage counts them); most: the largest number of candidates any pixel had (0 if empty).
     """
 
     pix: torch.Tensor
     prim: torch.Tensor
+    rest_pix: torch.Tensor | None = None
+    rest_prim: torch.Tensor | None = None
+    most: int = 0
 
     def occupied(self) -> torch.Tensor:
         """Flat indices into ``prim.view(-1)`` of the used slots ``[S]``, ascending."""
@@ -219,39 +225,39 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
             start_pair, base = pair_end[t], cum[t]
 
 
-def select_nearest(pix: torch.Tensor, depth: torch.Tensor, prim: torch.Tensor, K: int, num_pixels: int,
-                   outside: torch.Tensor | None = None) -> Selection:
-    """K smallest-depth candidates per pixel (ties: smaller ``prim`` first).
+def _sortable(score: torch.Tensor) -> torch.Tensor:
+    """float32 ``[C]`` -> int64 in [0, 2^32) with the same order (negative values included)."""
+    bits = score.contiguous().view(torch.int32).long()
+    return (bits ^ ((bits >> 31) & 0x7FFFFFFF)) + (1 << 31)
 
-    pix, depth, prim: ``[C]`` candidates (``depth > 0``), enumerated in ascending ``prim`` order
-    within each pixel. outside: optional ``[C]`` bool, True for candidates that only lie within the
-    blur radius of the pixel: they rank after every candidate that covers the pixel, so a blurred
-    neighbour never pushes a covering face out of the K slots. Returns a Selection over the pixels
-    with at least one candidate.
+
+def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K: int, num_pixels: int,
+                   keep_rest: bool = False) -> Selection:
+    """K candidates of smallest ``score`` per pixel (ties: smaller ``prim`` first).
+
+    pix, score, prim: ``[C]`` candidates (score any finite float: depth in hard mode, minus the
+    blend logit in soft mode), enumerated in ascending ``prim`` order within each pixel.
+    keep_rest: also return the candidates beyond the K slots (``rest_pix``, ``rest_prim``).
+    Returns a Selection over the pixels with at least one candidate.
     """
     device = pix.device
+    empty = torch.zeros(0, dtype=torch.long, device=device)
     if len(pix) == 0:
-        return Selection(torch.zeros(0, dtype=torch.long, device=device), torch.zeros(0, K, dtype=torch.long, device=device))
-    if K == 1:
-        if outside is not None:
-            depth = torch.where(outside, depth + (depth.max() + 1), depth)
-        zmin = torch.full((num_pixels,), float("inf"), dtype=depth.dtype, device=device)
-        zmin.scatter_reduce_(0, pix, depth, "amin")
-        win = depth == zmin[pix]
+        return Selection(empty, torch.zeros(0, K, dtype=torch.long, device=device), empty if keep_rest else None,
+                         empty if keep_rest else None, 0)
+    if K == 1 and not keep_rest:
+        zmin = torch.full((num_pixels,), float("inf"), dtype=score.dtype, device=device)
+        zmin.scatter_reduce_(0, pix, score, "amin")
+        win = score == zmin[pix]
         best = torch.full((num_pixels,), torch.iinfo(torch.long).max, dtype=torch.long, device=device)
         best.scatter_reduce_(0, pix[win], prim[win], "amin")
         active = torch.nonzero(best != torch.iinfo(torch.long).max).squeeze(1)
         return Selection(active, best[active].unsqueeze(1))
-    if depth.dtype == torch.float32:
-        # positive float32 bit patterns sort like the floats: one int64 key (pixel, outside, depth)
-        key = depth.contiguous().view(torch.int32).long()
-        if outside is not None:
-            key = key | (outside.long() << 32)
-        order = torch.sort((pix << 33) | key, stable=True).indices
+    if score.dtype == torch.float32:
+        # one int64 key (pixel, order-preserving score bits): a single sort
+        order = torch.sort((pix << 32) | _sortable(score), stable=True).indices
     else:
-        order = torch.sort(depth, stable=True).indices
-        if outside is not None:
-            order = order[torch.sort(outside[order].to(torch.uint8), stable=True).indices]
+        order = torch.sort(score, stable=True).indices
         order = order[torch.sort(pix[order], stable=True).indices]
     sp = pix[order]
     first = torch.ones_like(sp, dtype=torch.bool)
@@ -265,7 +271,11 @@ def select_nearest(pix: torch.Tensor, depth: torch.Tensor, prim: torch.Tensor, K
     out = torch.full((len(active) * K,), -1, dtype=torch.long, device=device)
     kept = torch.nonzero(keep).squeeze(1)
     out.index_copy_(0, seg.index_select(0, kept) * K + rank.index_select(0, kept), prim.index_select(0, order.index_select(0, kept)))
-    return Selection(active, out.view(-1, K))
+    rest_pix = rest_prim = None
+    if keep_rest:
+        rest = torch.nonzero(~keep).squeeze(1)
+        rest_pix, rest_prim = sp.index_select(0, rest), prim.index_select(0, order.index_select(0, rest))
+    return Selection(active, out.view(-1, K), rest_pix, rest_prim, int(rank.max()) + 1)
 
 
 def merge(selections: list[Selection], K: int, device) -> Selection:
@@ -276,4 +286,9 @@ def merge(selections: list[Selection], K: int, device) -> Selection:
         return selections[0]
     pix = torch.cat([s.pix for s in selections])
     order = torch.argsort(pix)
-    return Selection(pix[order], torch.cat([s.prim for s in selections])[order])
+    rest_pix = rest_prim = None
+    if selections[0].rest_pix is not None:
+        rest_pix = torch.cat([s.rest_pix for s in selections])
+        rest_prim = torch.cat([s.rest_prim for s in selections])
+    return Selection(pix[order], torch.cat([s.prim for s in selections])[order], rest_pix, rest_prim,
+                     max(s.most for s in selections))
