@@ -1,4 +1,6 @@
 """The tile kernels against the dense reference: identical ids (hard), images within 1e-5 (soft)."""
+import math
+
 import pytest
 import torch
 
@@ -17,6 +19,8 @@ def _search_both(r: MultiViewRenderer, meshes, dist):
     pf, _, _ = r.project_faces(meshes, azim, elev, dist)
     H = c.image_size
     ranking = r.soft_ranking(torch.full_like(azim, dist))
+    if ranking is not None:  # no depth-window pruning: the slots must then be exactly the reference's
+        ranking.depth_window = math.inf
     sel = mesh_raster.search_faces(pf, H=H, W=H, K=c.effective_k(), blur_radius=c.effective_blur(),
                                    tile_size=c.tile_size, max_candidates=c.max_candidates, ranking=ranking)
     ref = reference.dense_face_search(
@@ -30,10 +34,13 @@ def _assert_same(sel, ref):
     assert len(ref.pix) > 0
     assert torch.equal(sel.pix, ref.pix)
     assert torch.equal(sel.prim, ref.prim)
-    if sel.rest_pix is not None:  # the candidates beyond the K slots: the same (pixel, face) pairs
-        got = sorted(zip(sel.rest_pix.tolist(), sel.rest_prim.tolist()))
-        assert got == sorted(zip(ref.rest_pix.tolist(), ref.rest_prim.tolist()))
-        assert sel.most == ref.most
+    if sel.rest_pix is not None:
+        # the candidates beyond the K slots: a subset of the reference's (the search leaves out
+        # faces of fully covered pixels, which cannot change coverage); the ones test_soft_edges_*
+        # needs are checked there through the images
+        got = set(zip(sel.rest_pix.tolist(), sel.rest_prim.tolist()))
+        assert got <= set(zip(ref.rest_pix.tolist(), ref.rest_prim.tolist()))
+        assert sel.most <= ref.most
 
 
 @pytest.mark.parametrize("tile_size,max_candidates", [(8, 1 << 24), (8, 64), (5, 200), (32, 1)])
@@ -61,7 +68,8 @@ def test_soft_k_nearest_ids_match_dense(tile_size, max_candidates, K):
 @pytest.mark.parametrize("shading", ["flat", "smooth", "silhouette"])
 def test_soft_images_match_dense(monkeypatch, shading):
     meshes = random_triangles(25, seed=3, scale=0.9, size=0.6)
-    r = MultiViewRenderer(image_size=20, mode="soft", shading=shading, faces_per_pixel=4, sigma=1e-3, gamma=1e-2, tile_size=6)
+    r = MultiViewRenderer(image_size=20, mode="soft", shading=shading, faces_per_pixel=4, sigma=1e-3, gamma=1e-2, tile_size=6,
+                          coverage_tol=0.0)
     out = r(meshes, *VIEWS, 2.5)
 
     def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates, ranking):

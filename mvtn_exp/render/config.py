@@ -42,6 +42,9 @@ class RendererConfig:
     # which K faces hold a pixel's soft slots: "logit" (largest blend weights; coverage counts
     # every face within the blur radius) or "depth" (PyTorch3D's: the K nearest; coverage from them)
     soft_slots: str = "logit"
+    # soft coverage closer to 1 than this counts as full: faces beyond the K slots are then neither
+    # searched behind the surface nor counted (0: exact, only where coverage rounds to 1)
+    coverage_tol: float = 1e-3
     cull_backfaces: bool = False
     light: str = "camera"
     train_light: str = "random"
@@ -91,6 +94,7 @@ class RendererConfig:
             "max_candidates": self.max_candidates >= 1,
             "lod_faces_per_pixel": self.lod_faces_per_pixel > 0,
             "point_opacity": 0 < self.point_opacity <= 1,
+            "coverage_tol": 0 <= self.coverage_tol < 1,
         }
         for key, ok in checks.items():
             if not ok:

@@ -135,32 +135,41 @@ def face_planes(x0, y0, x1, y1, x2, y2) -> list[torch.Tensor]:
     return out
 
 
+# soft search: a candidate whose depth logit trails the best covering face of a pixel by more than
+# this much has a colour weight below exp(-DEPTH_WINDOW) of that face's (and log p <= 0 cannot help it)
+DEPTH_WINDOW = 12.0
+
+
 @dataclass
 class SoftRanking:
     """How soft mode ranks a pixel's candidates: by the blend logit ``log p + zinv / gamma``
-    (or by depth alone when ``by_depth``).
+    (or by depth alone when ``by_depth``, PyTorch3D's choice: the K nearest, no rest).
 
     zfar, znear: ``[num_images]`` the scene depth range of each image (as in ``softmax_blend``);
     sigma, gamma: the blend's. In the search, ``log p`` of a covering face is taken as 0 (its
     true value lies in [log 1/2, 0]); for the others it is ``logsigmoid(-d^2 / sigma)``.
+    interior: ``[F*M, 3]`` interior-edge flags (see ``face_fragments``); coverage_tol: coverage
+    closer to 1 than this counts as full (0: only where it rounds to 1); depth_window: how far
+    (in logit) behind a fully covering face a face may lie and still be searched (inf: no pruning).
     """
 
     zfar: torch.Tensor
     znear: torch.Tensor
     sigma: float
     gamma: float
-    by_depth: bool = False  # PyTorch3D's choice (renderer.soft_slots=depth): the K nearest, no rest
+    by_depth: bool = False
+    interior: torch.Tensor | None = None
+    coverage_tol: float = 0.0
+    depth_window: float = DEPTH_WINDOW
 
-    def score(self, image: torch.Tensor, depth: torch.Tensor, sqdist: torch.Tensor | None) -> torch.Tensor:
-        """Minus the logit of candidates ``[C]`` (smaller is better); sqdist None: all covering."""
-        if self.by_depth:
-            return depth
+    def depth_logit(self, image: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """``zinv / gamma`` of candidates ``[C]`` in images ``image`` ``[C]``."""
         zf = self.zfar.index_select(0, image)
-        zinv = (zf - depth) / (zf - self.znear.index_select(0, image)).clamp(min=1e-12)
-        logit = zinv / self.gamma
-        if sqdist is not None:
-            logit = logit + torch.nn.functional.logsigmoid(-sqdist / self.sigma)
-        return -logit
+        return (zf - depth) / ((zf - self.znear.index_select(0, image)).clamp(min=1e-12) * self.gamma)
+
+    def log_tol(self, dtype: torch.dtype) -> float:
+        """``log prod (1 - p)`` below which a pixel counts as fully covered."""
+        return math.log(self.coverage_tol) if self.coverage_tol > 0 else saturated_log_miss(dtype)
 
 
 def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int,
@@ -230,25 +239,62 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
         xy = torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2)
         for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, small_box):
             cand = tiles.concat(parts)
-            t = table.index_select(0, cand.prim)
-            px, py = cand.x[:, None], cand.y[:, None]
-            lam = t[:, 0:9:3] * px + t[:, 1:9:3] * py + t[:, 2:9:3]  # [C, 3]
-            inside = (lam >= 0).all(1)
-            near = inside.clone()
-            out_idx = torch.nonzero(~inside).squeeze(1)
-            fo = xy.index_select(0, cand.prim[out_idx])
-            sqd = torch.full_like(cand.x, -FAR_SQ)  # covering: log p taken as 0 in the ranking
-            sqd[out_idx] = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x[out_idx], cand.y[out_idx])
-            near[out_idx] = sqd[out_idx] <= blur_radius**2
-            keep = torch.nonzero(near).squeeze(1)
-            lam = lam[keep].clamp(min=0)
-            lam = lam / lam.sum(1, keepdim=True)
-            depth = 1.0 / (lam * t[keep, 9:12]).sum(1).clamp(min=1e-12)
-            pk = cand.pix[keep]
-            score = ranking.score(torch.div(pk, H * W, rounding_mode="floor"), depth, sqd[keep])
-            picks.append(tiles.select_nearest(pk, score, fv.index_select(0, cand.prim[keep]), K, num_pixels,
-                                              keep_rest=not ranking.by_depth))
+            picks.append(_soft_chunk(cand, table, xy, fv, ranking, blur_radius, K, H * W, num_pixels))
         return tiles.merge(picks, K, pf.cols.device)
+
+
+def _soft_chunk(cand: tiles.Candidates, table, xy, fv, ranking: SoftRanking, blur_radius: float, K: int,
+                image_pixels: int, num_pixels: int) -> tiles.Selection:
+    """One chunk of the soft search: blur-radius test, pruning, K best by logit, and the rest.
+
+    Pruning, in pixels whose covering faces alone leave less than ``ranking.coverage_tol``
+    uncovered (a conservative bound: the distance to an edge's line never exceeds the distance
+    to the edge): faces that do not cover the pixel and trail its nearest covering face by more
+    than ``ranking.depth_window`` in logit are dropped before any distance is computed (hidden, they add
+    neither colour nor coverage), and those that do not get a slot are not returned as rest.
+    Elsewhere (rims) every face within the blur radius is kept for coverage.
+    """
+    t = table.index_select(0, cand.prim)
+    lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]  # [C, 3]
+    inside = (lam >= 0).all(1)
+    lc = lam.clamp(min=0)
+    depth = 1.0 / ((lc / lc.sum(1, keepdim=True)) * t[:, 9:12]).sum(1).clamp(min=1e-12)
+    fvc = fv.index_select(0, cand.prim)
+    image = torch.div(cand.pix, image_pixels, rounding_mode="floor")
+    zl = ranking.depth_logit(image, depth)
+    outside = torch.nonzero(~inside).squeeze(1)
+    sat = None
+    if not ranking.by_depth:
+        ins = torch.nonzero(inside).squeeze(1)
+        base = cand.pix.min() if len(cand.pix) else 0
+        local = cand.pix - base
+        n = int(local.max()) + 1 if len(local) else 0
+        ti = t.index_select(0, ins)
+        dl = lam.index_select(0, ins) / torch.sqrt(ti[:, 0:9:3] ** 2 + ti[:, 1:9:3] ** 2)  # [n, 3] to edge lines
+        if ranking.interior is not None:
+            dl = torch.where(ranking.interior.index_select(0, fvc.index_select(0, ins)), torch.full_like(dl, 1e2), dl)
+        dmin = dl.amin(1).clamp(max=1e2)
+        miss = torch.zeros(n, dtype=lam.dtype, device=lam.device).index_add_(
+            0, local.index_select(0, ins), torch.nn.functional.logsigmoid(-dmin * dmin / ranking.sigma))
+        best = torch.full((n,), float("-inf"), dtype=lam.dtype, device=lam.device).scatter_reduce_(
+            0, local.index_select(0, ins), zl.index_select(0, ins), "amax")
+        sat = miss < ranking.log_tol(lam.dtype)
+        lo = local.index_select(0, outside)
+        hidden = sat.index_select(0, lo) & (zl.index_select(0, outside) < best.index_select(0, lo) - (math.log(2.0) + ranking.depth_window))
+        outside = outside[~hidden]
+    sqd = torch.full_like(cand.x, -FAR_SQ)  # covering: log p taken as 0 in the ranking
+    fo = xy.index_select(0, cand.prim.index_select(0, outside))
+    sqd[outside] = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x.index_select(0, outside), cand.y.index_select(0, outside))
+    near = inside.clone()
+    near[outside] = sqd.index_select(0, outside) <= blur_radius**2
+    keep = torch.nonzero(near).squeeze(1)
+    pk = cand.pix.index_select(0, keep)
+    if ranking.by_depth:
+        return tiles.select_nearest(pk, depth.index_select(0, keep), fvc.index_select(0, keep), K, num_pixels)
+    score = -(zl.index_select(0, keep) + torch.nn.functional.logsigmoid(-sqd.index_select(0, keep) / ranking.sigma))
+    rest_ok = inside.index_select(0, keep) | ~sat.index_select(0, local.index_select(0, keep))
+    return tiles.select_nearest(pk, score, fvc.index_select(0, keep), K, num_pixels, keep_rest=True,
+                                rest_mask=rest_ok)
 
 
 def _segment_sqdist(ax, ay, bx, by, px, py):
@@ -322,26 +368,27 @@ def saturated_log_miss(dtype: torch.dtype) -> float:
     return math.log(torch.finfo(dtype).eps) - 1.0
 
 
-def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, frag: Fragments, *, H: int, W: int, sigma: float,
-                  interior_edge: torch.Tensor | None) -> torch.Tensor:
+def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, frag: Fragments, ranking: SoftRanking, *, H: int,
+                  W: int) -> torch.Tensor:
     """Coverage of the candidates beyond the K slots: ``sum log(1 - p)`` per active pixel ``[P]``.
 
     Soft coverage is ``1 - prod (1 - p)`` over *every* face within the blur radius, not only the
-    K that hold colour slots, so it does not depend on K. Only pixels whose slots leave the
-    coverage below 1 in this dtype need the rest (silhouette rims, occlusion contours); there the
-    rest is recomputed differentiably, flat (one face per entry). Elsewhere it is 0.
+    K that hold colour slots, so it does not depend on K. Only pixels whose slots leave more than
+    ``ranking.coverage_tol`` uncovered need the rest (silhouette rims, occlusion contours); there
+    the rest is recomputed differentiably, flat (one face per entry). Elsewhere it is 0, which
+    changes coverage by less than ``coverage_tol``.
     """
     P = len(sel.pix)
     out = torch.zeros(P, dtype=pf.vert_xy.dtype, device=pf.vert_xy.device)
     if sel.rest_pix is None or len(sel.rest_pix) == 0:
         return out
     with torch.no_grad():
-        slots = torch.where(frag.valid, torch.nn.functional.logsigmoid(frag.dist / sigma), torch.zeros_like(frag.dist)).sum(1)
-        rim = slots > saturated_log_miss(slots.dtype)
+        slots = torch.where(frag.valid, torch.nn.functional.logsigmoid(frag.dist / ranking.sigma), torch.zeros_like(frag.dist)).sum(1)
+        rim = slots > ranking.log_tol(slots.dtype)
         owner = torch.searchsorted(sel.pix, sel.rest_pix)
         keep = torch.nonzero(rim.index_select(0, owner)).squeeze(1)
     if len(keep) == 0:
         return out
     rest = tiles.Selection(sel.rest_pix.index_select(0, keep), sel.rest_prim.index_select(0, keep).unsqueeze(1))
-    d = face_fragments(pf, rest, H=H, W=W, need_bary=False, need_dist=True, interior_edge=interior_edge).dist[:, 0]
-    return out.index_add(0, owner.index_select(0, keep), torch.nn.functional.logsigmoid(d / sigma))
+    d = face_fragments(pf, rest, H=H, W=W, need_bary=False, need_dist=True, interior_edge=ranking.interior).dist[:, 0]
+    return out.index_add(0, owner.index_select(0, keep), torch.nn.functional.logsigmoid(d / ranking.sigma))

@@ -126,16 +126,17 @@ class MultiViewRenderer(nn.Module):
         K = c.effective_k()
         pf, _, C = self.project_faces(meshes, azim, elev, dist)
         alive, facing = pf.alive, pf.facing
-        ranking = self.soft_ranking(dist.to(verts.dtype))
-        sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates,
-                                       ranking=ranking)
-        stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix), max_candidates=sel.most)
         interior = rest = None
         if c.soft:
             interior = self._interior_edges(meshes.faces, facing, M)
+        ranking = self.soft_ranking(dist.to(verts.dtype), interior)
+        sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates,
+                                       ranking=ranking)
+        stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix), max_candidates=sel.most)
         frag = mesh_raster.face_fragments(pf, sel, H=H, W=W, need_bary=c.shading == "smooth", need_dist=c.soft, interior_edge=interior)
         if c.soft:
-            rest = mesh_raster.rest_log_miss(pf, sel, frag, H=H, W=W, sigma=c.sigma, interior_edge=interior)
+            rest = mesh_raster.rest_log_miss(pf, sel, frag, ranking, H=H, W=W)
+            stats["rest_faces"] = 0 if sel.rest_pix is None else len(sel.rest_pix)
         if c.shading == "silhouette":
             if c.soft:
                 alpha = shading.coverage(frag.dist, frag.valid, c.sigma, rest)
@@ -154,8 +155,9 @@ class MultiViewRenderer(nn.Module):
         images, alpha = self._compose(frag.pix, rgb, alpha, B, M, H, W, verts)
         return RenderOutput(images, alpha, stats)
 
-    def soft_ranking(self, dist: torch.Tensor) -> mesh_raster.SoftRanking | None:
-        """How soft mode ranks faces for views at camera distances ``dist`` ``[B, M]`` (None in hard mode).
+    def soft_ranking(self, dist: torch.Tensor, interior: torch.Tensor | None = None) -> mesh_raster.SoftRanking | None:
+        """How soft mode ranks faces for views at camera distances ``dist`` ``[B, M]`` (None in hard mode);
+        interior: ``[F*M, 3]`` interior-edge flags (``_interior_edges``).
 
         The per-image depth range of a unit-sphere shape is [dist - 1, dist + 1] (near end clamped
         at ``znear``): the same range normalises depth in the search and in ``softmax_blend``.
@@ -164,7 +166,8 @@ class MultiViewRenderer(nn.Module):
         if not c.soft:
             return None
         d = dist.reshape(-1)
-        return mesh_raster.SoftRanking(d + 1.0, (d - 1.0).clamp(min=c.znear), c.sigma, c.gamma, c.soft_slots == "depth")
+        return mesh_raster.SoftRanking(d + 1.0, (d - 1.0).clamp(min=c.znear), c.sigma, c.gamma, c.soft_slots == "depth",
+                                       interior, c.coverage_tol)
 
     def project_faces(self, meshes: Meshes, azim, elev, dist):
         """Project and cull all faces for all views -> (ProjectedFaces, Cameras, camera centres ``[B*M, 3]``)."""

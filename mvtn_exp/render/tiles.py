@@ -232,12 +232,13 @@ def _sortable(score: torch.Tensor) -> torch.Tensor:
 
 
 def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K: int, num_pixels: int,
-                   keep_rest: bool = False) -> Selection:
+                   keep_rest: bool = False, rest_mask: torch.Tensor | None = None) -> Selection:
     """K candidates of smallest ``score`` per pixel (ties: smaller ``prim`` first).
 
     pix, score, prim: ``[C]`` candidates (score any finite float: depth in hard mode, minus the
     blend logit in soft mode), enumerated in ascending ``prim`` order within each pixel.
-    keep_rest: also return the candidates beyond the K slots (``rest_pix``, ``rest_prim``).
+    keep_rest: also return the candidates beyond the K slots (``rest_pix``, ``rest_prim``), only
+    those where ``rest_mask`` ``[C]`` is True when given.
     Returns a Selection over the pixels with at least one candidate.
     """
     device = pix.device
@@ -273,7 +274,8 @@ def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K
     out.index_copy_(0, seg.index_select(0, kept) * K + rank.index_select(0, kept), prim.index_select(0, order.index_select(0, kept)))
     rest_pix = rest_prim = None
     if keep_rest:
-        rest = torch.nonzero(~keep).squeeze(1)
+        rest = ~keep if rest_mask is None else ~keep & rest_mask.index_select(0, order)
+        rest = torch.nonzero(rest).squeeze(1)
         rest_pix, rest_prim = sp.index_select(0, rest), prim.index_select(0, order.index_select(0, rest))
     return Selection(active, out.view(-1, K), rest_pix, rest_prim, int(rank.max()) + 1)
 
