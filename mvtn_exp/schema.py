@@ -22,7 +22,7 @@ from .models.point_encoders import POINT_ENCODERS
 from .render.config import RendererConfig
 from .selectors import SELECTORS
 
-DATASETS = ("synthetic", "modelnet40", "scanobjectnn", "shapenet")
+DATASETS = ("synthetic", "synthetic_views", "modelnet40", "scanobjectnn", "shapenet")
 SHAPES = ("mesh", "points")
 SELECTOR_NAMES = tuple(SELECTORS)
 POINT_ENCODER_NAMES = tuple(POINT_ENCODERS)
@@ -55,8 +55,9 @@ class DatasetConfig:
     """Which shapes. ``root``: the dataset folder (synthetic: its cache folder).
 
     ``shape``: render meshes or point clouds; ``num_points``: points per shape fed to G (and
-    rendered when ``shape=points``). ``rotate``: none | y (about the vertical axis) | so3.
-    ``seed``: the data seed (synthetic geometry), separate from the training seed.
+    rendered when ``shape=points``). ``rotate``: none | y (about the vertical axis) | so3 (synthetic
+    datasets only; ``dataset=synthetic_views`` sets so3). ``seed``: the data seed (synthetic
+    geometry), separate from the training seed.
     ``num_per_class`` / ``max_faces``: synthetic shapes per class for (train, val, test) and their
     face budget. ``max_vertices``: real meshes are simplified to about this many vertices (0: never;
     the paper used 20,000). ``strict``: a broken shape file stops the run instead of being skipped

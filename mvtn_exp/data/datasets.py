@@ -22,6 +22,7 @@ from .scanobjectnn import ScanObjectNN
 from .shapenet import LAYOUT as SHAPENET_LAYOUT
 from .shapenet import ShapeNetCore
 from .synthetic import SyntheticShapes
+from .synthetic_views import SyntheticViews
 
 # What each real dataset's folder must contain.
 LAYOUTS = {
@@ -45,9 +46,13 @@ def build_dataset(cfg: DatasetConfig, split: str, progress: bool = True) -> Data
         return SyntheticShapes(cfg.root, split, num_per_class=cfg.num_per_class, seed=cfg.seed, rotate=cfg.rotate,
                                num_points=cfg.num_points, as_points=cfg.shape == "points",
                                max_faces=cfg.max_faces, progress=progress)
+    if cfg.name == "synthetic_views":
+        return SyntheticViews(cfg.root, split, num_per_class=cfg.num_per_class, seed=cfg.seed, rotate=cfg.rotate,
+                              num_points=cfg.num_points, as_points=cfg.shape == "points",
+                              max_faces=cfg.max_faces, progress=progress)
     if cfg.rotate != "none":
-        raise ValueError(f"dataset.rotate={cfg.rotate!r}: only dataset=synthetic rotates its shapes; "
-                         f"use dataset.rotate=none for {cfg.name}")
+        raise ValueError(f"dataset.rotate={cfg.rotate!r}: only dataset=synthetic and synthetic_views rotate their "
+                         f"shapes; use dataset.rotate=none for {cfg.name}")
     if cfg.name == "modelnet40" and cfg.format != "off":
         if cfg.shape != "points":
             raise ValueError(f"dataset.format={cfg.format}: point clouds only; use dataset.shape=points")
@@ -75,4 +80,4 @@ def build_dataset(cfg: DatasetConfig, split: str, progress: bool = True) -> Data
                             cache_dir=Path(cfg.cache_dir) / "shapenet", num_points=cfg.num_points,
                             max_vertices=cfg.max_vertices, seed=cfg.seed, strict=cfg.strict,
                             as_points=cfg.shape == "points", progress=progress)
-    raise ValueError(f"dataset={cfg.name!r}: expected one of synthetic, {', '.join(LAYOUTS)}")
+    raise ValueError(f"dataset={cfg.name!r}: expected one of synthetic, synthetic_views, {', '.join(LAYOUTS)}")

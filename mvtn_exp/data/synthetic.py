@@ -238,19 +238,21 @@ def _clean(v: np.ndarray, f: np.ndarray) -> Part:
     return v[used], remap[f]
 
 
-def build_shape(name: str, rng: np.random.Generator | int, max_faces: int = 2000) -> Part:
+def build_shape(name: str, rng: np.random.Generator | int, max_faces: int = 2000, builders=None) -> Part:
     """One raw instance of class ``name`` in its canonical pose (Y-up, front +Z, not normalised).
 
     ``rng``: a seed (int or SeedSequence) or a Generator (copied, not advanced). Round parts start
     at 32 sections and are coarsened until the shape has at most ``max_faces`` faces.
+    ``builders``: class name -> builder ``(rng, res) -> list of parts`` (default: ``BUILDERS``).
     Returns ``([V, 3] float64, [F, 3] int64)``.
     """
-    if name not in BUILDERS:
-        raise KeyError(f"synthetic: unknown class {name!r}; expected one of {CLASSES}")
+    builders = BUILDERS if builders is None else builders
+    if name not in builders:
+        raise KeyError(f"synthetic: unknown class {name!r}; expected one of {sorted(builders)}")
     res = 32
     while True:  # a fresh copy of the generator per attempt: the same draws at every resolution
         r = copy.deepcopy(rng) if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-        v, f = _clean(*_concat(BUILDERS[name](r, res)))
+        v, f = _clean(*_concat(builders[name](r, res)))
         if len(f) <= max_faces:
             return v, f
         if res <= 6:
@@ -333,6 +335,28 @@ def _validate(a: dict[str, np.ndarray], n: int, num_points: int) -> None:
         raise ValueError("inconsistent arrays")
 
 
+def split_count(split: str, rotate: str, num_per_class, seed: int, num_points: int, max_faces: int,
+                who: str = "synthetic") -> int:
+    """Check a procedural dataset's settings (ValueError naming the key) -> shapes per class in ``split``."""
+    for key, val, allowed in (("split", split, SPLITS), ("rotate", rotate, ROTATIONS)):
+        if val not in allowed:
+            raise ValueError(f"{who}: {key}={val!r}; expected one of {list(allowed)}")
+    counts = tuple(int(c) for c in num_per_class)
+    if len(counts) != 3 or min(counts) < 0:
+        raise ValueError(f"{who}: num_per_class={num_per_class!r}; expected 3 counts >= 0 (train, val, test)")
+    if int(seed) < 0 or int(num_points) < 1 or int(max_faces) < 1:
+        raise ValueError(f"{who}: need seed >= 0, num_points >= 1, max_faces >= 1 (got {seed}, {num_points}, {max_faces})")
+    return counts[SPLITS.index(split)]
+
+
+def cache_file(root, prefix: str, settings: dict) -> Path:
+    """``<root>/<prefix>_<split>_<hash>.npz`` (``root`` is created); the hash covers every setting."""
+    key = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    return root / f"{prefix}_{settings['split']}_{key}.npz"
+
+
 class SyntheticShapes(PackedShapes):
     """The embedded synthetic dataset (one split), as meshes and as fixed surface point samples.
 
@@ -349,22 +373,11 @@ class SyntheticShapes(PackedShapes):
     def __init__(self, root_cache_dir, split: str = "train", num_per_class=(40, 10, 20), seed: int = 0,
                  rotate: str = "none", num_points: int = 1024, as_points: bool = False, max_faces: int = 2000,
                  progress: bool = True):
-        for key, val, allowed in (("split", split, SPLITS), ("rotate", rotate, ROTATIONS)):
-            if val not in allowed:
-                raise ValueError(f"synthetic: {key}={val!r}; expected one of {list(allowed)}")
-        counts = tuple(int(c) for c in num_per_class)
-        if len(counts) != 3 or min(counts) < 0:
-            raise ValueError(f"synthetic: num_per_class={num_per_class!r}; expected 3 counts >= 0 (train, val, test)")
-        if int(seed) < 0 or int(num_points) < 1 or int(max_faces) < 1:
-            raise ValueError(f"synthetic: need seed >= 0, num_points >= 1, max_faces >= 1 (got {seed}, {num_points}, {max_faces})")
-        count = counts[SPLITS.index(split)]
+        count = split_count(split, rotate, num_per_class, seed, num_points, max_faces)
         # everything that determines this split's content (other splits' counts do not)
         self.settings = {"version": GEOMETRY_VERSION, "classes": list(CLASSES), "split": split, "count": count,
                          "seed": int(seed), "rotate": rotate, "max_faces": int(max_faces), "num_points": int(num_points)}
-        key = hashlib.sha1(json.dumps(self.settings, sort_keys=True).encode()).hexdigest()[:16]
-        root = Path(root_cache_dir)
-        root.mkdir(parents=True, exist_ok=True)
-        self.cache_path = root / f"synthetic_{split}_{key}.npz"
+        self.cache_path = cache_file(root_cache_dir, "synthetic", self.settings)
         n = count * len(CLASSES)
         arrays = load_npz(self.cache_path, self.settings, ARRAYS, lambda a: _validate(a, n, int(num_points)))
         if arrays is None:

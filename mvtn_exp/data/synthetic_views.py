@@ -1,0 +1,328 @@
+"""View-dependent synthetic dataset: 8 classes that differ only in a small detail inside a cup, under random poses.
+
+Every shape is the same kind of body (raw units, before normalisation; Y-up, detail face +Z):
+
+- a box ``W x H x D``, ``W, H ~ U(0.9, 1.3)``, ``D ~ U(0.4, 0.8)``;
+- a cup on its +Z face: a tube of inner radius ``r ~ U(0.26, 0.32)``, wall ``U(0.04, 0.06)`` and
+  depth ``h = r_in / tan(alpha)``, ``alpha ~ U(60, 66)`` deg, where ``r_in = r cos(pi / 24)`` is
+  the radius of the circle inscribed in the 24-sided inner wall;
+- the class: what stands centred on the cup's floor, inside the disc of radius
+  ``rd ~ U(0.55, 0.65) r``, ``hd ~ U(0.55, 0.8) h < h`` high, so the rim hides it from the side:
+  ``bar`` (a roof ridge 1.9 rd long, 0.6 rd wide), ``cone`` (radius 0.6 rd), ``cross`` (two
+  crossing ridges 0.5 rd wide), ``empty`` (nothing), ``pair`` (two cones of radius 0.38 rd at
+  +-0.6 rd), ``pyramid`` (square base inscribed in rd), ``ring`` (radii 0.55-1 rd, a roof-shaped
+  section), ``tetra`` (three-sided pyramid inscribed in rd).
+
+All classes draw the same numbers in the same order and nothing else, so one generator gives the
+same body and cup for every class: the detail is the only class difference. The shape is centred
+(bounding box) and scaled into the unit sphere, then turned by a rotation (``so3`` by default:
+uniform over SO(3), so the cup points anywhere). Determinism, splits and the ``.npz`` cache work
+as in ``synthetic.py``.
+
+Visibility (``sees_detail``): a camera sees the detail when the straight line from the centre of
+the cup's floor to the camera clears the rim, i.e. the camera is above the rim plane and inside
+the cone of half-angle ``atan(r_in / h)`` (= alpha) around the cup axis with its apex at the floor
+centre (exact for the polygonal cup, up to the slivers between the inscribed circle and the
+polygon; the box lies behind the floor plane and cannot block that line). ``full=True`` asks the
+same of every point of the footprint disc (cone ``atan((r_in - rd) / h)``): the whole detail
+shows. ``python -m mvtn_exp.data.synthetic_views --report`` prints how often fixed layouts see it.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import zlib
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import trimesh
+
+from .mesh_io import normalize_unit_sphere
+from .packed import PACKED_ARRAYS, PackedShapes, load_npz, pack, sample_surface, save_npz_atomic, validate
+from .synthetic import SPLITS, Part, _box, _check, _outward, _tm, build_shape, cache_file, random_rotation, split_count
+
+GEOMETRY_VERSION = "1"  # bump whenever a builder changes: old caches then miss
+CUP_SECTIONS = 24
+EXTRA = ("rotations", "detail_anchor", "detail_axis", "detail_size")
+EXTRA_SHAPES = {"rotations": (3, 3), "detail_anchor": (3,), "detail_axis": (3,), "detail_size": (3,)}
+
+
+class Dims(NamedTuple):
+    """One instance's proportions (raw units): box, cup (inner radius, inscribed radius, depth, wall), detail."""
+
+    W: float
+    H: float
+    D: float
+    r: float
+    r_in: float
+    h: float
+    wall: float
+    rd: float
+    hd: float
+
+
+def draw_dims(r: np.random.Generator) -> Dims:
+    """The only draws any class makes, always in this order (see the module docstring)."""
+    W, H, D = r.uniform(0.9, 1.3), r.uniform(0.9, 1.3), r.uniform(0.4, 0.8)
+    cup_r, wall, alpha = r.uniform(0.26, 0.32), r.uniform(0.04, 0.06), math.radians(r.uniform(60.0, 66.0))
+    r_in = cup_r * math.cos(math.pi / CUP_SECTIONS)
+    h = r_in / math.tan(alpha)
+    return Dims(W, H, D, cup_r, r_in, h, wall, r.uniform(0.55, 0.65) * cup_r, r.uniform(0.55, 0.8) * h)
+
+
+def _zcone(radius, height, xy, z0, sections) -> Part:
+    """Closed cone (``sections`` = 3, 4: a pyramid), axis +Z, base on the plane z = z0 at (x, y) = xy."""
+    return _tm(trimesh.creation.cone(radius=radius, height=height, sections=sections), (*xy, z0), False)
+
+
+def _ridge(length, width, height, z0, along_x: bool = True) -> Part:
+    """Closed triangular prism lying on the plane z = z0 (a roof ridge of ``height``), centred on the axis."""
+    L, w = length / 2, width / 2
+    v = np.array([[-L, -w, 0], [-L, w, 0], [-L, 0, height], [L, -w, 0], [L, w, 0], [L, 0, height]], np.float64)
+    f = np.array([[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [0, 3, 5], [0, 5, 2], [1, 2, 5], [1, 5, 4]], np.int64)
+    v = v if along_x else v[:, [1, 0, 2]] * (-1.0, 1.0, 1.0)  # turned 90 deg about Z
+    return _outward(v + (0.0, 0.0, z0), f)
+
+
+def _ring(d: Dims, sections) -> Part:
+    """Ring of radii 0.55-1 rd with a triangular (roof) section ``hd`` high, on the cup's floor."""
+    profile = [[0.55 * d.rd, 0.0], [d.rd, 0.0], [0.775 * d.rd, d.hd], [0.55 * d.rd, 0.0]]
+    return _tm(trimesh.creation.revolve(np.array(profile), sections=sections), (0.0, 0.0, d.D / 2), False)
+
+
+# class -> parts on the cup's floor (z = D/2), given the dims and the round-part sections. No part
+# has a face parallel to the floor on top: under a light from the camera such a face would shade
+# exactly like the floor, and the detail would vanish when seen straight down the cup.
+DETAILS = {
+    "bar": lambda d, n: [_ridge(1.9 * d.rd, 0.6 * d.rd, d.hd, d.D / 2)],
+    "cone": lambda d, n: [_zcone(0.6 * d.rd, d.hd, (0.0, 0.0), d.D / 2, n)],
+    "cross": lambda d, n: [_ridge(1.9 * d.rd, 0.5 * d.rd, d.hd, d.D / 2), _ridge(1.9 * d.rd, 0.5 * d.rd, d.hd, d.D / 2, False)],
+    "empty": lambda d, n: [],
+    "pair": lambda d, n: [_zcone(0.38 * d.rd, d.hd, (s * 0.6 * d.rd, 0.0), d.D / 2, n) for s in (-1, 1)],
+    "pyramid": lambda d, n: [_zcone(d.rd, d.hd, (0.0, 0.0), d.D / 2, 4)],
+    "ring": lambda d, n: [_ring(d, n)],
+    "tetra": lambda d, n: [_zcone(d.rd, d.hd, (0.0, 0.0), d.D / 2, 3)],
+}
+CLASSES: list[str] = sorted(DETAILS)
+
+
+def _builder(cls: str):
+    def build(r: np.random.Generator, res: int) -> list[Part]:
+        d = draw_dims(r)
+        cup = trimesh.creation.annulus(d.r, d.r + d.wall, d.h, sections=CUP_SECTIONS)
+        return [_box((d.W, d.H, d.D)), _tm(cup, (0.0, 0.0, d.D / 2 + d.h / 2), False)] + DETAILS[cls](d, max(res // 2, 8))
+    return build
+
+
+BUILDERS = {c: _builder(c) for c in CLASSES}
+
+
+def frame_points(d: Dims) -> np.ndarray:
+    """``[3, 3]`` canonical points that travel with the mesh: floor centre, rim-plane centre, inscribed wall point."""
+    return np.array([[0.0, 0.0, d.D / 2], [0.0, 0.0, d.D / 2 + d.h], [d.r_in, 0.0, d.D / 2]])
+
+
+def make_shape(cls: str, seq, rotation: np.ndarray, max_faces: int = 2000):
+    """One normalised, rotated instance -> ``verts [V, 3] float32``, ``faces [F, 3] int64``, and the
+    detail frame: ``anchor [3]`` (floor centre), ``axis [3]`` (unit, out of the cup), ``size [3]``
+    (``r_in``, ``h``, ``rd`` in unit-sphere units). ``seq``: the geometry seed (SeedSequence or int)."""
+    v, f = build_shape(cls, seq, max_faces, builders=BUILDERS)
+    d = draw_dims(np.random.default_rng(seq))  # the builder's draws again, from a fresh generator
+    # the frame points lie inside the bounding box and nearer the centre than the farthest
+    # vertex, so normalising them with the mesh leaves the mesh's normalisation unchanged
+    both = normalize_unit_sphere(np.concatenate([v, frame_points(d)])) @ rotation.T
+    v, (a, m, w) = both[:-3], both[-3:]
+    h = np.linalg.norm(m - a)
+    size = np.array([np.linalg.norm(w - a), h, d.rd * h / d.h])
+    return v.astype(np.float32), f, a, (m - a) / h, size
+
+
+# ----------------------------------------------------------------------------- generation + cache
+def instance_seeds(seed: int, split: str, cls: str, k: int):
+    """Shape k of class ``cls`` in ``split``: seeds of its geometry, rotation and points (as in
+    ``synthetic.generate_split``: ``[seed, split index, crc32(cls), k, 0 | 1 | 2]``)."""
+    base = [int(seed), SPLITS.index(split), zlib.crc32(cls.encode()), int(k)]
+    return np.random.SeedSequence(base + [0]), np.random.default_rng(base + [1]), np.random.default_rng(base + [2])
+
+
+def generate_split(split: str, count: int, seed: int, rotate: str, max_faces: int, num_points: int,
+                   progress: bool = True) -> dict[str, np.ndarray]:
+    """``count`` shapes per class -> packed arrays (``packed.PACKED_ARRAYS`` plus ``EXTRA``)."""
+    from tqdm.auto import tqdm
+
+    shapes = []
+    bar = tqdm(total=count * len(CLASSES), desc=f"synthetic_views {split}", unit="shape", disable=not progress, leave=False)
+    for label, cls in enumerate(CLASSES):
+        for k in range(count):
+            name = f"{cls}_{split}_{k:04d}"
+            geometry, rot_rng, point_rng = instance_seeds(seed, split, cls, k)
+            R = random_rotation(rotate, rot_rng)
+            v, f, anchor, axis, size = make_shape(cls, geometry, R, max_faces)
+            _check(name, v, f)
+            pts = sample_surface(v.astype(np.float64), f, num_points, point_rng)
+            shapes.append({"verts": v, "faces": f, "points": pts, "label": label, "name": name, "rotations": R,
+                           "detail_anchor": anchor, "detail_axis": axis, "detail_size": size})
+            bar.update()
+    bar.close()
+    arrays = pack(shapes, num_points, EXTRA)
+    return {**arrays, **{k: arrays[k].reshape(-1, *EXTRA_SHAPES[k]) for k in EXTRA}}
+
+
+def _validate(a: dict[str, np.ndarray], n: int, num_points: int) -> None:
+    validate(a, n, num_points, len(CLASSES))
+    if any(a[k].shape != (n, *EXTRA_SHAPES[k]) or not np.isfinite(a[k]).all() for k in EXTRA):
+        raise ValueError("inconsistent arrays")
+
+
+class SyntheticViews(PackedShapes):
+    """The view-dependent synthetic dataset (one split); arguments as ``synthetic.SyntheticShapes``
+    (``rotate`` none | y | so3 is honoured, default so3; the cache lives in ``root_cache_dir``).
+
+    ``ds[i]`` -> the ``SyntheticShapes`` item (``verts``, ``faces`` unless ``as_points``, ``points``,
+    ``label``, ``name`` like ``"ring_test_0003"``, ``rotation [3, 3]``: verts = canonical @ R^T) plus
+    the detail frame, float32: ``detail_anchor [3]``, ``detail_axis [3]``, ``detail_size [3]``
+    (see ``make_shape``; what ``sees_detail`` takes).
+    """
+
+    def __init__(self, root_cache_dir, split: str = "train", num_per_class=(24, 12, 24), seed: int = 0,
+                 rotate: str = "so3", num_points: int = 1024, as_points: bool = False, max_faces: int = 2000,
+                 progress: bool = True):
+        count = split_count(split, rotate, num_per_class, seed, num_points, max_faces, who="synthetic_views")
+        self.settings = {"version": GEOMETRY_VERSION, "classes": list(CLASSES), "split": split, "count": count,
+                         "seed": int(seed), "rotate": rotate, "max_faces": int(max_faces), "num_points": int(num_points)}
+        self.cache_path = cache_file(root_cache_dir, "synthetic_views", self.settings)
+        n = count * len(CLASSES)
+        arrays = load_npz(self.cache_path, self.settings, PACKED_ARRAYS + EXTRA, lambda a: _validate(a, n, int(num_points)))
+        if arrays is None:
+            arrays = generate_split(split, count, int(seed), rotate, int(max_faces), int(num_points), progress)
+            _validate(arrays, n, int(num_points))
+            save_npz_atomic(self.cache_path, arrays, self.settings)
+        super().__init__(arrays, CLASSES, split, as_points)
+
+    def __getitem__(self, i: int) -> dict:
+        item = self.item(i)
+        i = i % len(self)
+        item["rotation"] = torch.from_numpy(self._a["rotations"][i].copy())
+        for k in EXTRA[1:]:
+            item[k] = torch.from_numpy(self._a[k][i].copy())
+        return item
+
+
+# ----------------------------------------------------------------------------- visibility
+def camera_positions(azim, elev, dist=2.2) -> np.ndarray:
+    """Degrees -> ``[..., 3]`` positions ``dist * (cos e sin a, sin e, cos e cos a)`` (looking at the origin)."""
+    a, e = np.radians(np.asarray(azim, np.float64)), np.radians(np.asarray(elev, np.float64))
+    return np.asarray(dist, np.float64)[..., None] * np.stack([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)], -1)
+
+
+def view_angles(direction) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions ``[..., 3]`` from the origin -> the azimuth, elevation (degrees) of a camera there."""
+    d = np.asarray(direction, np.float64)
+    return np.degrees(np.arctan2(d[..., 0], d[..., 2])), np.degrees(np.arcsin(np.clip(d[..., 1], -1.0, 1.0)))
+
+
+def sees_detail(anchor, axis, size, cams, full: bool = False) -> np.ndarray:
+    """``[N, M]`` bool: camera m sees shape n's detail (criterion in the module docstring).
+
+    ``anchor``, ``axis``, ``size``: ``[N, 3]`` (the dataset's ``detail_*`` arrays); ``cams``:
+    camera positions ``[M, 3]`` (shared) or ``[N, M, 3]``.
+    """
+    anchor, axis, size = (np.asarray(x, np.float64) for x in (anchor, axis, size))
+    cams = np.asarray(cams, np.float64)
+    d = (cams if cams.ndim == 3 else cams[None]) - anchor[:, None]  # [N, M, 3] floor centre -> camera
+    up = (d * axis[:, None]).sum(-1)  # height of the camera above the floor plane
+    lateral = np.linalg.norm(d - up[..., None] * axis[:, None], axis=-1)
+    r_in, h, rd = size[:, 0:1], size[:, 1:2], size[:, 2:3]
+    room = r_in - rd if full else r_in  # how far the line may drift sideways by the rim's height
+    return (up > h) & (h * lateral < room * up)
+
+
+def layout_views(layout: str, M: int) -> tuple[np.ndarray, np.ndarray]:
+    """Azimuths, elevations ``[M]`` (degrees) of the fixed layouts of ``render/layouts.py``:
+    ``circular`` (elevation 30, azimuth 0 first) or ``spherical`` (Fibonacci)."""
+    from ..render import layouts
+
+    if layout not in ("circular", "spherical"):
+        raise ValueError(f"layout={layout!r}: expected circular or spherical")
+    azim, elev, _ = layouts.circular(M, elevation=30.0) if layout == "circular" else layouts.spherical(M)
+    return azim[0].double().numpy(), elev[0].double().numpy()
+
+
+def visibility_table(ds: SyntheticViews, views=(1, 4, 12), poses: int = 200, seed: int = 0, dist: float = 2.2) -> list[dict]:
+    """Per fixed layout and M: the fraction of ``ds``'s shapes of which at least one view sees the
+    detail (``seen``; ``seen_full``: the whole detail), and ``seen_mc``: the same over ``poses``
+    further uniform SO(3) poses of every shape (seeded by ``seed``): the dataset's expectation."""
+    a = ds._a
+    frame = (a["detail_anchor"], a["detail_axis"], a["detail_size"])
+    rng = np.random.default_rng([seed, 7])
+    Q = np.stack([random_rotation("so3", rng) for _ in range(poses)])  # [P, 3, 3]
+    mc = [np.einsum("pij,nj->pni", Q, x).reshape(-1, 3) for x in frame[:2]] + [np.tile(frame[2], (poses, 1))]
+    rows = []
+    for layout in ("circular", "spherical"):
+        for M in views:
+            cams = camera_positions(*layout_views(layout, M), dist)
+            rows.append({"layout": layout, "M": M, "seen": sees_detail(*frame, cams).any(1).mean(),
+                         "seen_full": sees_detail(*frame, cams, full=True).any(1).mean(),
+                         "seen_mc": sees_detail(*mc, cams).any(1).mean()})
+    return rows
+
+
+def rendered_traces(ds: SyntheticViews, azim, elev, dist: float = 2.2, image_size: int = 64, batch: int = 16) -> np.ndarray:
+    """``[N, M]`` pixels in which a hard, flat-shaded ``image_size`` render of each shape of ``ds``
+    (meshes) differs from its ``empty`` twin (same seeds: same body, cup and pose, no detail), seen
+    from ``azim``, ``elev`` (degrees, ``[M]`` shared or ``[N, M]`` per shape): what the renderer
+    shows of the detail, to check ``sees_detail`` against (0 for the ``empty`` class itself)."""
+    from ..render.renderer import MultiViewRenderer
+    from .shapes import Meshes
+
+    if ds.as_points:
+        raise ValueError("rendered_traces: needs meshes (as_points=False)")
+    renderer, cfg, out = MultiViewRenderer(image_size=image_size, mode="hard", shading="flat"), ds.settings, []
+    azim, elev = (torch.as_tensor(np.asarray(x, np.float32)) for x in (azim, elev))
+    azim, elev = (x.reshape(1, -1).expand(len(ds), -1) if x.dim() == 1 else x for x in (azim, elev))
+    for lo in range(0, len(ds), batch):
+        verts, faces = [], []
+        for i in range(lo, min(lo + batch, len(ds))):
+            cls, split, k = ds.names[i].rsplit("_", 2)
+            geometry, rot_rng, _ = instance_seeds(cfg["seed"], split, cls, int(k))
+            v, f, *_ = make_shape("empty", geometry, random_rotation(cfg["rotate"], rot_rng), cfg["max_faces"])
+            item = ds.item(i)
+            verts += [item["verts"], torch.from_numpy(v)]
+            faces += [item["faces"], torch.from_numpy(f)]
+        views = [x[lo:lo + len(verts) // 2].repeat_interleave(2, 0) for x in (azim, elev)]  # shape, twin, ...
+        with torch.no_grad():
+            img = renderer(Meshes.from_list(verts, faces), *views, dist).images
+        out.append(((img[0::2] - img[1::2]).abs() > 1e-4).any(2).flatten(2).sum(-1).numpy())
+    return np.concatenate(out)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(prog="python -m mvtn_exp.data.synthetic_views", description=__doc__.splitlines()[0])
+    p.add_argument("--report", action="store_true", help="print the fixed-view visibility table (Markdown)")
+    p.add_argument("--root", default="outputs/cache/synthetic_views", help="cache folder")
+    p.add_argument("--split", default="test", choices=SPLITS)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--num-per-class", type=int, nargs=3, default=(24, 12, 24))
+    p.add_argument("--rotate", default="so3")
+    p.add_argument("--poses", type=int, default=200, help="random poses per shape for the expectation")
+    p.add_argument("--render", action="store_true", help="also render every shape and its empty twin (64 px)")
+    args = p.parse_args(argv)
+    if not args.report:
+        p.error("nothing to do: pass --report")
+    ds = SyntheticViews(args.root, args.split, args.num_per_class, args.seed, args.rotate, num_points=1024)
+    print(f"synthetic_views {args.split}: {len(ds)} shapes, rotate={args.rotate}, seed={args.seed}, cameras at "
+          "distance 2.2. Seen: the line from the cup's floor centre to a camera clears the rim.\n")
+    cols = ["layout", "M", f"seen ({len(ds)} shapes)", "whole detail seen", f"seen ({args.poses} random poses per shape)"]
+    cols += ["render differs from the empty twin (>= 1 px, 64 px)"] if args.render else []
+    print("| " + " | ".join(cols) + " |\n" + "|---" * len(cols) + "|")
+    keep = np.asarray(ds.labels) != CLASSES.index("empty")
+    for row in visibility_table(ds, poses=args.poses):
+        cells = [row["layout"], str(row["M"])] + [f"{row[k]:.3f}" for k in ("seen", "seen_full", "seen_mc")]
+        if args.render:
+            cells.append(f"{(rendered_traces(ds, *layout_views(row['layout'], row['M']))[keep] >= 1).any(1).mean():.3f}")
+        print("| " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()
