@@ -2,8 +2,8 @@
 
 The reference is the same renderer with ``faces_per_pixel`` large enough to hold every face within
 the blur radius of every pixel (checked: ``stats["max_candidates"]`` must not exceed it) and exact
-coverage (``coverage_tol=0``), so any difference comes from which faces hold the K slots and from
-the pruning of the search. Edge pixels are those whose reference
+coverage and no pruning (``coverage_tol=0``, ``depth_window=null``), so any difference comes from
+which faces hold the K slots and from the pruning of the search. Edge pixels are those whose reference
 coverage lies in ``[EDGE_LO, 1 - EDGE_LO]``; a pixel is "off" when its coverage (or any colour
 channel) differs from the reference by more than ``TOL``.
 
@@ -69,7 +69,7 @@ def measure(meshes: Meshes, *, size: int, shading: str, K: int, views: int = 4, 
     kw = dict(image_size=size, mode="soft", shading=shading, **renderer)
     with torch.no_grad():
         out = MultiViewRenderer(faces_per_pixel=K, **kw).eval()(meshes, azim, elev, dist)
-        ref = MultiViewRenderer(faces_per_pixel=REF_K, **{**kw, "coverage_tol": 0.0}).eval()(meshes, azim, elev, dist)
+        ref = MultiViewRenderer(faces_per_pixel=REF_K, **{**kw, "coverage_tol": 0.0, "depth_window": None}).eval()(meshes, azim, elev, dist)
     most = ref.stats.get("max_candidates")
     if most is not None and most > REF_K:
         raise RuntimeError(f"reference K={REF_K} holds fewer faces than a pixel has ({most})")
@@ -97,8 +97,8 @@ def to_markdown(rows: list[EdgeError]) -> str:
     head = "| shape | px | shading | K | edge pixels | coverage off > 0.02 | max coverage error | colour off > 0.02 | max colour error |\n"
     head += "|---|---|---|---|---|---|---|---|---|\n"
     return head + "".join(
-        f"| {r.shape} | {r.size} | {r.shading} | {r.K} | {r.edge_pixels} | {100 * r.cov_off:.2f}% | {r.cov_max:.3f} | "
-        f"{100 * r.rgb_off:.2f}% | {r.rgb_max:.3f} |\n" for r in rows)
+        f"| {r.shape} | {r.size} | {r.shading} | {r.K} | {r.edge_pixels} | {100 * r.cov_off:.2f}% | {r.cov_max:.1e} | "
+        f"{100 * r.rgb_off:.2f}% | {r.rgb_max:.1e} |\n" for r in rows)
 
 
 def main(argv=None) -> None:

@@ -45,6 +45,9 @@ class RendererConfig:
     # soft coverage closer to 1 than this counts as full: faces beyond the K slots are then neither
     # searched behind the surface nor counted (0: exact, only where coverage rounds to 1)
     coverage_tol: float = 1e-3
+    # soft colour: faces whose blend logit trails a pixel's largest by more than this (weight below
+    # exp(-depth_window) of it) get no slot, and hidden ones are not searched (null: no pruning)
+    depth_window: float | None = 12.0
     cull_backfaces: bool = False
     light: str = "camera"
     train_light: str = "random"
@@ -102,6 +105,8 @@ class RendererConfig:
         for key in ("background", "light_direction", "object_color"):
             if len(getattr(self, key)) != 3:
                 raise ValueError(f"renderer.{key} must have 3 entries, got {getattr(self, key)}")
+        if self.depth_window is not None and not self.depth_window > 0:
+            raise ValueError(f"renderer.depth_window must be > 0 or null, got {self.depth_window}")
         if self.blur_radius is not None and self.blur_radius < 0:
             raise ValueError(f"renderer.blur_radius must be >= 0 or null, got {self.blur_radius}")
         return self

@@ -252,7 +252,9 @@ def _soft_chunk(cand: tiles.Candidates, table, xy, fv, ranking: SoftRanking, blu
     to the edge): faces that do not cover the pixel and trail its nearest covering face by more
     than ``ranking.depth_window`` in logit are dropped before any distance is computed (hidden, they add
     neither colour nor coverage), and those that do not get a slot are not returned as rest.
-    Elsewhere (rims) every face within the blur radius is kept for coverage.
+    Elsewhere (rims) every face within the blur radius is kept for coverage. Everywhere, a slot
+    goes only to faces whose logit is within ``depth_window`` of the pixel's largest: the others
+    would weigh less than ``exp(-depth_window)`` of it in the colour and count only for coverage.
     """
     t = table.index_select(0, cand.prim)
     lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]  # [C, 3]
@@ -292,9 +294,13 @@ def _soft_chunk(cand: tiles.Candidates, table, xy, fv, ranking: SoftRanking, blu
     if ranking.by_depth:
         return tiles.select_nearest(pk, depth.index_select(0, keep), fvc.index_select(0, keep), K, num_pixels)
     score = -(zl.index_select(0, keep) + torch.nn.functional.logsigmoid(-sqd.index_select(0, keep) / ranking.sigma))
-    rest_ok = inside.index_select(0, keep) | ~sat.index_select(0, local.index_select(0, keep))
+    lk = local.index_select(0, keep)
+    # a slot only for faces whose colour weight is within exp(-depth_window) of the pixel's largest
+    least = torch.full((n,), float("inf"), dtype=score.dtype, device=score.device).scatter_reduce_(0, lk, score, "amin")
+    slot_ok = score <= least.index_select(0, lk) + ranking.depth_window
+    rest_ok = inside.index_select(0, keep) | ~sat.index_select(0, lk)
     return tiles.select_nearest(pk, score, fvc.index_select(0, keep), K, num_pixels, keep_rest=True,
-                                rest_mask=rest_ok)
+                                rest_mask=rest_ok, slot_mask=slot_ok)
 
 
 def _segment_sqdist(ax, ay, bx, by, px, py):
@@ -368,12 +374,13 @@ def saturated_log_miss(dtype: torch.dtype) -> float:
     return math.log(torch.finfo(dtype).eps) - 1.0
 
 
-def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, frag: Fragments, ranking: SoftRanking, *, H: int,
-                  W: int) -> torch.Tensor:
+def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, slots_log_miss: torch.Tensor, ranking: SoftRanking, *,
+                  H: int, W: int) -> torch.Tensor:
     """Coverage of the candidates beyond the K slots: ``sum log(1 - p)`` per active pixel ``[P]``.
 
     Soft coverage is ``1 - prod (1 - p)`` over *every* face within the blur radius, not only the
-    K that hold colour slots, so it does not depend on K. Only pixels whose slots leave more than
+    K that hold colour slots, so it does not depend on K. Only pixels whose slots
+    (``slots_log_miss`` ``[P]``, their ``sum log(1 - p)``) leave more than
     ``ranking.coverage_tol`` uncovered need the rest (silhouette rims, occlusion contours); there
     the rest is recomputed differentiably, flat (one face per entry). Elsewhere it is 0, which
     changes coverage by less than ``coverage_tol``.
@@ -383,8 +390,7 @@ def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, frag: Fragments, ran
     if sel.rest_pix is None or len(sel.rest_pix) == 0:
         return out
     with torch.no_grad():
-        slots = torch.where(frag.valid, torch.nn.functional.logsigmoid(frag.dist / ranking.sigma), torch.zeros_like(frag.dist)).sum(1)
-        rim = slots > ranking.log_tol(slots.dtype)
+        rim = slots_log_miss.detach() > ranking.log_tol(slots_log_miss.dtype)
         owner = torch.searchsorted(sel.pix, sel.rest_pix)
         keep = torch.nonzero(rim.index_select(0, owner)).squeeze(1)
     if len(keep) == 0:
@@ -392,3 +398,12 @@ def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, frag: Fragments, ran
     rest = tiles.Selection(sel.rest_pix.index_select(0, keep), sel.rest_prim.index_select(0, keep).unsqueeze(1))
     d = face_fragments(pf, rest, H=H, W=W, need_bary=False, need_dist=True, interior_edge=ranking.interior).dist[:, 0]
     return out.index_add(0, owner.index_select(0, keep), torch.nn.functional.logsigmoid(d / ranking.sigma))
+
+
+def packed_slots(sel: tiles.Selection) -> tuple[tiles.Selection, torch.Tensor]:
+    """The used slots of ``sel`` one per row: (Selection with pix ``[S]``, prim ``[S, 1]``; owner ``[S]``,
+    the active-pixel index of each row). Soft mode shades and blends only these."""
+    K = sel.prim.shape[1]
+    used = sel.occupied()
+    owner = torch.div(used, K, rounding_mode="floor")
+    return tiles.Selection(sel.pix.index_select(0, owner), sel.prim.reshape(-1).index_select(0, used).unsqueeze(1)), owner

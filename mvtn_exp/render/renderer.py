@@ -6,6 +6,7 @@ without blur, no barycentrics for flat shading, nothing for pixels no primitive 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -126,34 +127,49 @@ class MultiViewRenderer(nn.Module):
         K = c.effective_k()
         pf, _, C = self.project_faces(meshes, azim, elev, dist)
         alive, facing = pf.alive, pf.facing
-        interior = rest = None
+        interior = None
         if c.soft:
             interior = self._interior_edges(meshes.faces, facing, M)
         ranking = self.soft_ranking(dist.to(verts.dtype), interior)
         sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates,
                                        ranking=ranking)
         stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix), max_candidates=sel.most)
-        frag = mesh_raster.face_fragments(pf, sel, H=H, W=W, need_bary=c.shading == "smooth", need_dist=c.soft, interior_edge=interior)
         if c.soft:
-            rest = mesh_raster.rest_log_miss(pf, sel, frag, ranking, H=H, W=W)
-            stats["rest_faces"] = 0 if sel.rest_pix is None else len(sel.rest_pix)
-        if c.shading == "silhouette":
-            if c.soft:
-                alpha = shading.coverage(frag.dist, frag.valid, c.sigma, rest)
-            else:
-                alpha = frag.valid[:, 0].to(verts.dtype)
-            bg = self._background(verts)
-            rgb = alpha[:, None] + (1 - alpha[:, None]) * bg
+            rgb, alpha = self._soft_pixels(meshes, pf, sel, ranking, B, M, C, stats)
         else:
-            colors = self._face_colors(meshes, frag, B, M, C)
-            if c.soft:
-                img_of_pix = frag.pix // (H * W)
-                rgb, alpha = shading.softmax_blend(colors, frag.dist, frag.zbuf, frag.valid, take(ranking.zfar, img_of_pix), take(ranking.znear, img_of_pix),
-                                                   self._background(verts), sigma=c.sigma, gamma=c.gamma, rest=rest)
+            frag = mesh_raster.face_fragments(pf, sel, H=H, W=W, need_bary=c.shading == "smooth", need_dist=False, interior_edge=None)
+            if c.shading == "silhouette":
+                alpha = frag.valid[:, 0].to(verts.dtype)
+                rgb = alpha[:, None] + (1 - alpha[:, None]) * self._background(verts)
             else:
-                rgb, alpha = shading.hard_blend(colors, frag.valid)
-        images, alpha = self._compose(frag.pix, rgb, alpha, B, M, H, W, verts)
+                rgb, alpha = shading.hard_blend(self._face_colors(meshes, frag, B, M, C), frag.valid)
+        images, alpha = self._compose(sel.pix, rgb, alpha, B, M, H, W, verts)
         return RenderOutput(images, alpha, stats)
+
+    def _soft_pixels(self, meshes: Meshes, pf, sel, ranking, B, M, C, stats) -> tuple[torch.Tensor, torch.Tensor]:
+        """Soft mode on the active pixels ``sel.pix`` ``[P]`` -> rgb ``[P, 3]``, alpha ``[P]``.
+
+        Only the used slots are shaded (packed, one per row); coverage adds every other face within
+        the blur radius where the slots leave the pixel uncovered (``mesh_raster.rest_log_miss``).
+        """
+        c = self.cfg
+        H = W = c.image_size
+        bg = self._background(meshes.verts)
+        slots, owner = mesh_raster.packed_slots(sel)
+        frag = mesh_raster.face_fragments(pf, slots, H=H, W=W, need_bary=c.shading == "smooth", need_dist=True,
+                                          interior_edge=ranking.interior)
+        P = len(sel.pix)
+        miss = shading.log_miss(frag.dist[:, 0], owner, P, c.sigma)
+        miss = miss + mesh_raster.rest_log_miss(pf, sel, miss, ranking, H=H, W=W)
+        alpha = shading.coverage(miss)
+        stats.update(slots=len(owner), rest_faces=0 if sel.rest_pix is None else len(sel.rest_pix))
+        if c.shading == "silhouette":
+            return alpha[:, None] + (1 - alpha[:, None]) * bg, alpha
+        colors = self._face_colors(meshes, frag, B, M, C)[:, 0]
+        image = take(torch.div(sel.pix, H * W, rounding_mode="floor"), owner)
+        rgb = shading.softmax_blend(colors, frag.dist[:, 0], frag.zbuf[:, 0], owner, alpha, take(ranking.zfar, image),
+                                    take(ranking.znear, image), bg, sigma=c.sigma, gamma=c.gamma)
+        return rgb, alpha
 
     def soft_ranking(self, dist: torch.Tensor, interior: torch.Tensor | None = None) -> mesh_raster.SoftRanking | None:
         """How soft mode ranks faces for views at camera distances ``dist`` ``[B, M]`` (None in hard mode);
@@ -167,7 +183,7 @@ class MultiViewRenderer(nn.Module):
             return None
         d = dist.reshape(-1)
         return mesh_raster.SoftRanking(d + 1.0, (d - 1.0).clamp(min=c.znear), c.sigma, c.gamma, c.soft_slots == "depth",
-                                       interior, c.coverage_tol)
+                                       interior, c.coverage_tol, math.inf if c.depth_window is None else c.depth_window)
 
     def project_faces(self, meshes: Meshes, azim, elev, dist):
         """Project and cull all faces for all views -> (ProjectedFaces, Cameras, camera centres ``[B*M, 3]``)."""

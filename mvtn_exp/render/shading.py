@@ -1,7 +1,8 @@
 """Shading and blending: Phong lighting, hard / softmax / silhouette blending, point compositing.
 
-All blends take per-slot tensors of the active pixels (``[P, K, ...]``, slots ordered nearest
-first) and return ``rgb [P, 3]`` (background already mixed in) and ``alpha [P]``.
+Hard and point blends take per-slot tensors of the active pixels (``[P, K, ...]``, slots ordered
+nearest first); the soft mesh blend takes packed slots (``[S, ...]`` with the pixel of each).
+All return ``rgb [P, 3]`` (background already mixed in) and ``alpha [P]``.
 Everything is written in numerically stable forms: log-sigmoid and logsumexp for soft blending,
 ``expm1`` for coverage, no divisions by sums that can reach zero.
 """
@@ -44,29 +45,28 @@ def hard_blend(colors: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor,
     return colors[:, 0], valid[:, 0].to(colors.dtype)
 
 
-def coverage(dist: torch.Tensor, valid: torch.Tensor, sigma: float, rest: torch.Tensor | None = None) -> torch.Tensor:
-    """Soft silhouette ``1 - prod (1 - sigmoid(-d / sigma))`` from signed squared distances ``[P, K]``.
+def log_miss(dist: torch.Tensor, owner: torch.Tensor, num_pixels: int, sigma: float) -> torch.Tensor:
+    """``sum log(1 - p)`` per pixel ``[P]`` of packed slots: signed squared distances ``dist`` ``[S]``
+    of the faces, ``owner`` ``[S]`` their pixel, ``p = sigmoid(-d / sigma)``."""
+    out = torch.zeros(num_pixels, dtype=dist.dtype, device=dist.device)
+    return out.index_add(0, owner, F.logsigmoid(dist / sigma))
 
-    rest: optional ``[P]`` ``sum log(1 - p)`` of the faces within the blur radius that hold no
-    slot (``mesh_raster.rest_log_miss``), so the product runs over every face, whatever K is.
-    """
-    log_miss = F.logsigmoid(dist / sigma)  # log(1 - p_k)
-    log_miss = torch.where(valid, log_miss, torch.zeros_like(log_miss)).sum(-1)
-    if rest is not None:
-        log_miss = log_miss + rest
+
+def coverage(log_miss: torch.Tensor) -> torch.Tensor:
+    """Soft silhouette ``1 - prod (1 - p)`` from its log-miss ``[P]`` (``expm1``: exact near 0)."""
     return -torch.expm1(log_miss)
 
 
-def softmax_blend(colors, dist, zbuf, valid, zfar, znear, background, *, sigma: float, gamma: float, rest=None):
-    """SoftRas-style depth blend of the K slots, composited over the background by soft coverage.
+def softmax_blend(colors, dist, zbuf, owner, alpha, zfar, znear, background, *, sigma: float, gamma: float):
+    """SoftRas-style depth blend of packed slots, composited over the background by soft coverage.
 
-    colors ``[P, K, 3]``; dist, zbuf, valid ``[P, K]``; zfar, znear ``[P]`` per-pixel scene depth
-    range; background ``[3]``. Surface colour: softmax over the slots of ``p_k exp(zinv_k / gamma)``
-    (log space) with ``p_k = sigmoid(-d_k / sigma)`` and ``zinv = (zfar - z) / (zfar - znear)``.
-    Image: ``alpha * surface + (1 - alpha) * background`` with ``alpha = 1 - prod (1 - p)`` over
-    every face within the blur radius (the slots and ``rest``, see ``coverage``). The slots hold
-    the K largest logits (``mesh_raster.search_faces``), so the colour misses only the smallest
-    weights of the softmax.
+    colors ``[S, 3]``; dist, zbuf, owner, zfar, znear ``[S]`` (per slot: signed squared distance,
+    depth, its pixel, the scene depth range of its image); alpha ``[P]`` coverage of every face
+    within the blur radius (``coverage``); background ``[3]``. Surface colour: the softmax over a
+    pixel's slots of ``log p + zinv / gamma`` with ``p = sigmoid(-d / sigma)`` and
+    ``zinv = (zfar - z) / (zfar - znear)``; the slots hold a pixel's largest logits
+    (``mesh_raster.search_faces``), so the colour misses only negligible weights.
+    Image: ``alpha * surface + (1 - alpha) * background``.
 
     Why not SoftRas's background slot (weight ``exp(eps / gamma)``): at a small gamma it has no
     weight next to any face (measured: exactly 0 at every partly covered edge pixel with
@@ -74,20 +74,16 @@ def softmax_blend(colors, dist, zbuf, valid, zfar, znear, background, *, sigma: 
     camera gradient of shaded images did not match finite differences (cosine ~0.1-0.3). With the
     coverage composite, edges fade into the background and carry the silhouette's gradient.
     """
-    zinv = (zfar[:, None] - zbuf) / (zfar - znear).clamp(min=1e-12)[:, None]
+    P = len(alpha)
+    zinv = (zfar - zbuf) / (zfar - znear).clamp(min=1e-12)
     logit = F.logsigmoid(-dist / sigma) + zinv / gamma
-    logit = torch.where(valid, logit, torch.full_like(logit, NEG))
-    w = torch.softmax(logit, 1)
-    surface = (w[:, :, None] * colors).sum(1)
-    alpha = coverage(dist, valid, sigma, rest)
+    # the softmax is shift-invariant: subtract each pixel's largest logit (no gradient needed)
+    top = torch.full((P,), NEG, dtype=logit.dtype, device=logit.device).scatter_reduce(0, owner, logit.detach(), "amax")
+    w = torch.exp(logit - top.index_select(0, owner))  # the largest is exp(0) = 1: the sum is >= 1
+    total = torch.zeros(P, dtype=w.dtype, device=w.device).index_add(0, owner, w)
+    surface = torch.zeros(P, 3, dtype=w.dtype, device=w.device).index_add(0, owner, w[:, None] * colors) / total[:, None]
     rgb = alpha[:, None] * surface + (1 - alpha[:, None]) * background
-    return rgb.clamp(0, 1), alpha  # clamp: rounding can exceed 1 by an ulp
-
-
-def silhouette_blend(dist, valid, *, sigma: float):
-    """White silhouette: rgb = alpha (on a black background it is the coverage itself)."""
-    alpha = coverage(dist, valid, sigma)
-    return alpha, alpha
+    return rgb.clamp(0, 1)  # clamp: rounding can exceed 1 by an ulp
 
 
 def alpha_composite(alpha, colors, background):

@@ -232,13 +232,15 @@ def _sortable(score: torch.Tensor) -> torch.Tensor:
 
 
 def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K: int, num_pixels: int,
-                   keep_rest: bool = False, rest_mask: torch.Tensor | None = None) -> Selection:
+                   keep_rest: bool = False, rest_mask: torch.Tensor | None = None,
+                   slot_mask: torch.Tensor | None = None) -> Selection:
     """K candidates of smallest ``score`` per pixel (ties: smaller ``prim`` first).
 
     pix, score, prim: ``[C]`` candidates (score any finite float: depth in hard mode, minus the
     blend logit in soft mode), enumerated in ascending ``prim`` order within each pixel.
     keep_rest: also return the candidates beyond the K slots (``rest_pix``, ``rest_prim``), only
-    those where ``rest_mask`` ``[C]`` is True when given.
+    those where ``rest_mask`` ``[C]`` is True when given. slot_mask: ``[C]``, False for candidates
+    that may not hold a slot (they must rank after every candidate that may, in their pixel).
     Returns a Selection over the pixels with at least one candidate.
     """
     device = pix.device
@@ -267,6 +269,8 @@ def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K
     seg_start = torch.where(first, idx, torch.zeros_like(idx)).cummax(0).values
     rank = idx - seg_start
     keep = rank < K
+    if slot_mask is not None:
+        keep &= slot_mask.index_select(0, order)
     seg = torch.cumsum(first.long(), 0) - 1
     active = sp[first]
     out = torch.full((len(active) * K,), -1, dtype=torch.long, device=device)
