@@ -43,9 +43,11 @@ def test_quick_benchmark_cli(tmp_path):
     assert "MALLOC_MMAP_THRESHOLD_=65536" in md  # the CLI re-executed itself with the pinned threshold
 
     grid = _table(md, "Renderer grid")
-    assert len(grid) == 8  # (2k mesh, 2048 points) x 64 px x M in {1, 4} x K in {1, 8}
+    # (2k mesh, 2048 points) x 64 px x M in {1, 4} x K in {1, 8}, soft mesh rows in flat and smooth
+    assert len(grid) == 10
+    assert sorted(r[5] for r in grid if r[0] == "torus-2k" and r[4] == "8") == ["flat", "flat", "smooth", "smooth"]
     for row in grid:
-        fwd, fb, peak = float(row[5]), float(row[6]), float(row[7])
+        fwd, fb, peak = float(row[6]), float(row[7]), float(row[8])
         assert fwd > 0 and fb > 0 and math.isfinite(fwd) and math.isfinite(fb)
         assert peak >= 0 and math.isfinite(peak)
     assert {r[0] for r in grid} == {"torus-2k", "points-2048"}
@@ -54,11 +56,13 @@ def test_quick_benchmark_cli(tmp_path):
     dense = _table(md, "Dense reference")
     assert len(dense) == 2 and all(r[-1] == "yes" and float(r[5]) > 0 and float(r[6]) > 0 for r in dense)
     targets = _table(md, "Targets")
-    assert len(targets) == 6 and all(re.match(r"PASS|MISS|n/a", r[-1]) for r in targets)
+    edges = _table(md, "Soft edges")
+    assert len(edges) == 3 and all(int(r[3]) > 0 and 0 <= float(r[4].rstrip("%")) <= 100 for r in edges)
+    assert len(targets) == 8 and all(re.match(r"PASS|MISS|n/a", r[-1]) for r in targets)
 
     data = json.loads((tmp_path / "bench.json").read_text())
     assert data["meta"]["options"]["quick"] is True
-    assert len(data["grid"]) == 8
+    assert len(data["grid"]) == 10
     for row in data["grid"]:
         assert all(_positive_finite(t) for t in row["fwd_s"] + row["fwd_bwd_s"]) and row["fwd_s"] and row["fwd_bwd_s"]
         assert row["peak_mib"] is not None and row["peak_mib"] >= 0

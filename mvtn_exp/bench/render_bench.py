@@ -42,12 +42,14 @@ from ..data.shapes import Meshes, PointClouds
 from ..models.backbones import resnet18
 from ..render import layouts, lod, mesh_raster
 from ..render.renderer import MultiViewRenderer
+from . import edge_error
 from .dense import dense_pairs, dense_search
 from .memory import PeakMemory, malloc_threshold_note, set_malloc_mode
 
 TORUS_SECTIONS = {"torus-2k": 32, "torus-20k": 100, "torus-100k": 224}
 POINT_SOURCE = "torus-20k"  # the surface point clouds are sampled from
 LIMIT_MIB = 2048.0
+SOFT_SHADINGS = ("flat", "smooth")  # soft rows: training uses smooth
 
 
 @dataclass
@@ -127,9 +129,9 @@ def prims_of(shape) -> int:
 LOD_FACES_PER_PIXEL = (0.5, 0.25, 0.125)
 
 
-def renderer_for(shape, size: int, K: int, **extra) -> MultiViewRenderer:
+def renderer_for(shape, size: int, K: int, shading: str = "flat", **extra) -> MultiViewRenderer:
     if isinstance(shape, Meshes):
-        mode = dict(mode="hard") if K == 1 else dict(mode="soft", faces_per_pixel=K)
+        mode = dict(mode="hard") if K == 1 else dict(mode="soft", faces_per_pixel=K, shading=shading)
         return MultiViewRenderer(image_size=size, **mode, **extra).eval()
     return MultiViewRenderer(image_size=size, points_per_pixel=K, **extra).eval()
 
@@ -204,6 +206,7 @@ class Results:
     dense: list = field(default_factory=list)
     lod: list = field(default_factory=list)
     batch8: list = field(default_factory=list)
+    edges: list = field(default_factory=list)
     targets: list = field(default_factory=list)
 
 
@@ -246,30 +249,38 @@ class Bench:
         t = self.times(fwd_bwd)
         self.res.resnet.append(dict(images=M, size=size, fwd_bwd_s=t))
 
-    def grid_row(self, name: str, size: int, M: int, K: int) -> dict:
-        key = (name, size, M, K)
+    def grid_row(self, name: str, size: int, M: int, K: int, shading: str) -> dict:
+        key = (name, size, M, K, shading)
         if key not in self._rows:
             shape = self.shape(name)
             self._rows[key] = dict(kind="mesh" if isinstance(shape, Meshes) else "points", shape=name, prims=prims_of(shape),
-                                   size=size, views=M, K=K, peak_mib=None, memory_run_s=None, fwd_s=[], fwd_bwd_s=[], stats={})
+                                   size=size, views=M, K=K, shading=shading, peak_mib=None, memory_run_s=None, fwd_s=[],
+                                   fwd_bwd_s=[], stats={})
             self.res.grid.append(self._rows[key])
         return self._rows[key]
 
-    def job_render_memory(self, name: str, size: int, M: int, K: int) -> None:
+    def job_render_memory(self, name: str, size: int, M: int, K: int, shading: str) -> None:
         """Phase 1: extra peak memory of one forward+backward (the config's first call)."""
         shape = self.shape(name)
-        _, fwd_bwd, _ = render_fns(renderer_for(shape, size, K), shape, Views(M, 1, self.dev))
+        _, fwd_bwd, _ = render_fns(renderer_for(shape, size, K, shading), shape, Views(M, 1, self.dev))
         peak, t = peak_of(fwd_bwd, self.dev)
-        self.grid_row(name, size, M, K).update(peak_mib=peak, memory_run_s=t)
+        self.grid_row(name, size, M, K, shading).update(peak_mib=peak, memory_run_s=t)
 
-    def job_render_time(self, name: str, size: int, M: int, K: int) -> None:
+    def job_render_time(self, name: str, size: int, M: int, K: int, shading: str) -> None:
         """Phase 2: one warm-up forward+backward, then forward (no_grad) and forward+backward times."""
         shape = self.shape(name)
-        fwd, fwd_bwd, last = render_fns(renderer_for(shape, size, K), shape, Views(M, 1, self.dev))
+        fwd, fwd_bwd, last = render_fns(renderer_for(shape, size, K, shading), shape, Views(M, 1, self.dev))
         fwd_bwd()
         tf = self.times(fwd)
         tb = self.times(fwd_bwd)
-        self.grid_row(name, size, M, K).update(fwd_s=tf, fwd_bwd_s=tb, stats=_jsonable(last.get("stats", {})))
+        self.grid_row(name, size, M, K, shading).update(fwd_s=tf, fwd_bwd_s=tb, stats=_jsonable(last.get("stats", {})))
+
+    def job_edge_error(self) -> None:
+        """Soft-edge coverage and colour error at K=8 against the every-face reference (``edge_error``)."""
+        cases = edge_error.default_cases()[2:3] if self.opts.quick else edge_error.default_cases()
+        for meshes, size in cases:
+            for shading in SOFT_SHADINGS + ("silhouette",):
+                self.res.edges.append(asdict(edge_error.measure(meshes, size=size, shading=shading, K=8)))
 
     def job_dense(self, name: str, size: int, M: int) -> None:
         mesh = self.shape(name)
@@ -352,27 +363,31 @@ class Bench:
     def jobs(self) -> list[tuple[str, Callable[[], None]]]:
         """Phase 1 (memory, allocator pinned as the process started) then phase 2 (times, allocator in speed mode)."""
         g = self.grid
-        configs = [(name, size, M, K) for name in list(g.meshes) + [f"points-{n}" for n in g.points]
-                   for size in g.sizes for M in g.views for K in g.ks]
-        out = [(f"memory {n} {s}px M={m} K={k}", lambda a=(n, s, m, k): self.job_render_memory(*a)) for n, s, m, k in configs]
+        configs = [(name, size, M, K, sh) for name in list(g.meshes) + [f"points-{n}" for n in g.points]
+                   for size in g.sizes for M in g.views for K in g.ks
+                   for sh in (SOFT_SHADINGS if K > 1 and name in g.meshes else ("flat",))]
+        out = [(f"memory {n} {s}px M={m} K={k} {sh}", lambda a=(n, s, m, k, sh): self.job_render_memory(*a))
+               for n, s, m, k, sh in configs]
         if g.batch8:
             out += [(f"memory batch8 {k}", lambda k=k: self.job_batch8(k)) for k in ("mesh", "points")]
         out.append(("switch allocator to speed mode", self.job_speed_mode))
         out += [(f"resnet18 {M}x{g.resnet_size}px", lambda M=M: self.job_resnet(M, g.resnet_size)) for M in g.views]
-        out += [(f"time {n} {s}px M={m} K={k}", lambda a=(n, s, m, k): self.job_render_time(*a)) for n, s, m, k in configs]
+        out += [(f"time {n} {s}px M={m} K={k} {sh}", lambda a=(n, s, m, k, sh): self.job_render_time(*a))
+                for n, s, m, k, sh in configs]
         out += [(f"dense {name} {size}px M={M}", lambda a=(name, size, M): self.job_dense(*a))
                 for name in g.meshes for size in g.sizes for M in g.views]
         out += [(f"lod {name} {fpp} faces/px", lambda n=name, f=fpp: self.job_lod(n, f))
                 for name in g.lod_meshes for fpp in LOD_FACES_PER_PIXEL]
+        out.append(("soft edge error", self.job_edge_error))
         return out
 
     def job_speed_mode(self) -> None:
         self.res.meta["timing_malloc"] = ("glibc mmap threshold 32 MiB, trim 64 MiB (set with mallopt)"
                                           if set_malloc_mode("speed") else "unchanged (mallopt unavailable)")
 
-    def find_grid(self, shape: str, size: int, M: int, K: int):
+    def find_grid(self, shape: str, size: int, M: int, K: int, shading: str = "flat"):
         for row in self.res.grid:
-            if (row["shape"], row["size"], row["views"], row["K"]) == (shape, size, M, K):
+            if (row["shape"], row["size"], row["views"], row["K"], row["shading"]) == (shape, size, M, K, shading):
                 return row
         return None
 
@@ -417,6 +432,9 @@ def targets(bench: Bench) -> list[dict]:
 
     out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, K=1: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
                          bench.find_grid("torus-20k", S, M, 1), 0.25))
+    for shading, factor in (("smooth", 1.5), ("flat", 1.5)):
+        out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
+                             bench.find_grid("torus-20k", S, M, 8, shading), factor))
     out.append(vs_resnet(f"2048 points, {M} views, {S} px, K=8: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
                          bench.find_grid("points-2048", S, M, 8), 0.1))
 
@@ -506,11 +524,13 @@ def to_markdown(res: Results) -> str:
     ]
     parts = ["\n".join(head)]
 
-    rows = [[r["shape"], r["prims"], r["size"], r["views"], r["K"], f_ms(r["fwd_s"]), f_ms(r["fwd_bwd_s"]),
-             _f1(r["peak_mib"]), r["stats"].get("active_pixels", "-"), f"{len(r['fwd_s'])}/{len(r['fwd_bwd_s'])}"] for r in res.grid]
-    parts.append("## Renderer grid (B=1, spherical views; mesh K=1: hard, K=8: soft; points K: points per pixel)\n\n"
-                 + md_table(["shape", "faces/points", "px", "M", "K", "fwd ms", "fwd+bwd ms", "extra peak MiB (fwd+bwd)",
-                             "active px", "runs fwd/fb"], rows))
+    rows = [[r["shape"], r["prims"], r["size"], r["views"], r["K"], r["shading"] if r["kind"] == "mesh" else "-",
+             f_ms(r["fwd_s"]), f_ms(r["fwd_bwd_s"]), _f1(r["peak_mib"]), r["stats"].get("active_pixels", "-"),
+             r["stats"].get("slots", "-"), r["stats"].get("rest_faces", "-"), f"{len(r['fwd_s'])}/{len(r['fwd_bwd_s'])}"]
+            for r in res.grid]
+    parts.append("## Renderer grid (B=1, spherical views; mesh K=1: hard flat, K=8: soft, flat and smooth; points K: points per pixel)\n\n"
+                 + md_table(["shape", "faces/points", "px", "M", "K", "shading", "fwd ms", "fwd+bwd ms", "extra peak MiB (fwd+bwd)",
+                             "active px", "soft slots", "soft rest faces", "runs fwd/fb"], rows))
 
     rows = [[r["images"], r["size"], f_ms(r["fwd_bwd_s"]), len(r["fwd_bwd_s"])] for r in res.resnet]
     parts.append("## ResNet-18 reference (40 classes, train mode, forward+backward)\n\n"
@@ -550,6 +570,13 @@ def to_markdown(res: Results) -> str:
                      + md_table(["kind", "shape", "faces/points", "B", "M", "px", "K", "extra peak MiB", "time s (memory run)"], rows))
     else:
         parts.append("## Batch of 8 shapes\n\nnot run (quick=true)")
+
+    rows = [[r["shape"], r["size"], r["shading"], r["edge_pixels"], f"{100 * r['cov_off']:.2f}%", f"{r['cov_max']:.1e}",
+             f"{100 * r['rgb_off']:.2f}%", f"{r['rgb_max']:.1e}"] for r in res.edges]
+    parts.append(f"## Soft edges: K=8 against every face within the blur radius (edge pixels: reference coverage in "
+                 f"[{edge_error.EDGE_LO:g}, 1 - {edge_error.EDGE_LO:g}]; 4 spherical views)\n\n"
+                 + md_table(["mesh", "px", "shading", "edge pixels", f"coverage off > {edge_error.TOL:g}", "max coverage error",
+                             f"colour off > {edge_error.TOL:g}", "max colour error"], rows))
 
     rows = [[t["target"], t["value"], t["limit"], t["status"]] for t in res.targets]
     parts.append("## Targets\n\n" + md_table(["target", "measured", "limit", "status"], rows))
