@@ -154,3 +154,39 @@ def test_sphere_fills_screen_when_camera_is_inside_it():
     r = MultiViewRenderer(image_size=32, mode="hard", shading="silhouette")
     out = r(icosphere(3), torch.tensor([[0.0]]), torch.tensor([[0.0]]), 0.5)
     assert out.alpha.mean() > 0.95
+
+
+@pytest.mark.parametrize("settings,problem", [
+    (dict(mode="hard"), "renderer.mode=hard"),
+    (dict(mode="hard", shading="smooth"), "renderer.mode=hard"),
+    (dict(mode="soft", sigma=1e-8, image_size=224), "renderer.sigma=1e-08"),
+    (dict(mode="soft", sigma=1e-4, image_size=8), "renderer.sigma=0.0001"),
+    (dict(mode="soft", sigma=1e-4, image_size=64), None),
+    (dict(mode="soft", sigma=1e-8, blur_radius=0.05, image_size=64), None),
+])
+def test_settings_without_camera_gradient_are_named(settings, problem):
+    from mvtn_exp.render.config import RendererConfig
+
+    got = RendererConfig(**settings).validate().camera_gradient_problem()
+    assert (got is None) if problem is None else got.startswith(problem)
+
+
+@pytest.mark.parametrize("sigma,size,flagged", [(1e-8, 224, True), (1e-4, 64, False)])
+def test_sub_pixel_blur_gives_no_usable_camera_gradient(sigma, size, flagged):
+    # silhouettes of a box from 8 azimuths: the camera gradient of the image sums against central
+    # differences. A blur far below a pixel (flagged by camera_gradient_problem) does not follow them.
+    box = box_mesh()
+    r = MultiViewRenderer(mode="soft", shading="silhouette", sigma=sigma, image_size=size)
+    azim = torch.tensor([[10.0, 30.0, 50.0, 70.0, 100.0, 130.0, 160.0, 200.0]], requires_grad=True)
+    elev = torch.full((1, 8), 20.0)
+    r(box, azim, elev, 2.5).images.sum().backward()
+    with torch.no_grad():
+        fd = (r(box, azim + 0.5, elev, 2.5).images - r(box, azim - 0.5, elev, 2.5).images).sum(dim=(2, 3, 4))[0]
+    g = azim.grad[0]
+    cos = float(torch.nn.functional.cosine_similarity(g, fd, 0))
+    ratio = float(g.norm() / fd.norm())
+    assert (r.cfg.camera_gradient_problem() is not None) == flagged
+    if flagged:
+        assert cos < 0.9 or not 0.67 < ratio < 1.5
+    else:
+        assert cos > 0.99 and 0.9 < ratio < 1.1

@@ -122,6 +122,20 @@ class RendererConfig:
         r = self.blur_radius if self.blur_radius is not None else math.sqrt(self.sigma * math.log(1e4 - 1))
         return min(r, 2 * math.sqrt(2.0))
 
+    def camera_gradient_problem(self) -> str | None:
+        """Why meshes rendered with these settings give a learned selector (almost) no camera
+        gradient, naming the setting; None when they do."""
+        if not self.soft:
+            return ("renderer.mode=hard: images are piecewise constant in the camera, so a learned selector gets "
+                    "almost no useful gradient (measured); use renderer=soft")
+        pixels = self.effective_blur() * self.image_size / 2
+        if pixels < 0.25:
+            return (f"renderer.sigma={self.sigma:g} (blur_radius={self.blur_radius}) blurs edges over {pixels:.2g} px "
+                    f"at image_size={self.image_size}, under a quarter pixel: only the few pixel centres that closely "
+                    "hug an edge see it, so the silhouettes' camera gradient is spiky and does not follow the image "
+                    "(measured on a box: cosine with finite differences 0.85 at 0.05 px, 0.99 at 0.2 px); raise sigma")
+        return None
+
     def effective_k(self) -> int:
         """Faces per pixel actually searched: 1 when nothing is blurred (no K>1 work without blur)."""
         return self.faces_per_pixel if self.soft and self.effective_blur() > 0 else 1
