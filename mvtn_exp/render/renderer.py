@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from ..data.shapes import Meshes, PointClouds
-from . import lod, mesh_raster, point_raster, shading
+from . import lod, mesh_raster, point_raster, shading, soft_search
 from .cameras import Cameras, camera_to_ndc, to_camera_packed
 from .config import RendererConfig
 from .ops import scatter_rows, take
@@ -150,17 +150,17 @@ class MultiViewRenderer(nn.Module):
         """Soft mode on the active pixels ``sel.pix`` ``[P]`` -> rgb ``[P, 3]``, alpha ``[P]``.
 
         Only the used slots are shaded (packed, one per row); coverage adds every other face within
-        the blur radius where the slots leave the pixel uncovered (``mesh_raster.rest_log_miss``).
+        the blur radius where the slots leave the pixel uncovered (``soft_search.rest_log_miss``).
         """
         c = self.cfg
         H = W = c.image_size
         bg = self._background(meshes.verts)
-        slots, owner = mesh_raster.packed_slots(sel)
+        slots, owner = soft_search.packed_slots(sel)
         frag = mesh_raster.face_fragments(pf, slots, H=H, W=W, need_bary=c.shading == "smooth", need_dist=True,
                                           interior_edge=ranking.interior)
         P = len(sel.pix)
         miss = shading.log_miss(frag.dist[:, 0], owner, P, c.sigma)
-        miss = miss + mesh_raster.rest_log_miss(pf, sel, miss, ranking, H=H, W=W)
+        miss = miss + soft_search.rest_log_miss(pf, sel, miss, ranking, H=H, W=W)
         alpha = shading.coverage(miss)
         stats.update(slots=len(owner), rest_faces=0 if sel.rest_pix is None else len(sel.rest_pix))
         if c.shading == "silhouette":
@@ -171,7 +171,7 @@ class MultiViewRenderer(nn.Module):
                                     take(ranking.znear, image), bg, sigma=c.sigma, gamma=c.gamma)
         return rgb, alpha
 
-    def soft_ranking(self, dist: torch.Tensor, interior: torch.Tensor | None = None) -> mesh_raster.SoftRanking | None:
+    def soft_ranking(self, dist: torch.Tensor, interior: torch.Tensor | None = None) -> soft_search.SoftRanking | None:
         """How soft mode ranks faces for views at camera distances ``dist`` ``[B, M]`` (None in hard mode);
         interior: ``[F*M, 3]`` interior-edge flags (``_interior_edges``).
 
@@ -182,7 +182,7 @@ class MultiViewRenderer(nn.Module):
         if not c.soft:
             return None
         d = dist.reshape(-1)
-        return mesh_raster.SoftRanking(d + 1.0, (d - 1.0).clamp(min=c.znear), c.sigma, c.gamma, c.soft_slots == "depth",
+        return soft_search.SoftRanking(d + 1.0, (d - 1.0).clamp(min=c.znear), c.sigma, c.gamma, c.soft_slots == "depth",
                                        interior, c.coverage_tol, math.inf if c.depth_window is None else c.depth_window)
 
     def project_faces(self, meshes: Meshes, azim, elev, dist):

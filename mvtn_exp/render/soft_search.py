@@ -1,0 +1,232 @@
+"""Soft-mode face search: per pixel, the faces that hold colour slots and the rest that only count for coverage.
+
+Two passes, both without autograd:
+
+1. covering faces (``_covering``): each face's undilated row spans, the pixels it covers; from them
+   every pixel's best (largest) depth logit and a conservative bound on how fully its covering
+   faces alone cover it (distances to the edge lines never exceed those to the edges);
+2. faces within the blur radius that do not cover the pixel (``_near``): the dilated row spans,
+   where a candidate from a face whose nearest corner lies more than ``depth_window`` (in logit)
+   behind the best covering face of a fully covered pixel is dropped before anything else is
+   computed (hidden: it adds neither colour nor coverage); the others are tested exactly against
+   the blur radius.
+
+Then per pixel the K candidates of largest blend logit ``log p + zinv / gamma`` (the K largest
+softmax weights, only those within ``depth_window`` of the largest) hold the slots; every other
+candidate comes back as the rest (``Selection.rest_pix`` / ``rest_prim``), except outside faces of
+fully covered pixels, so that coverage counts every face within the blur radius whatever K is
+(``rest_log_miss``). ``SoftRanking.by_depth`` keeps PyTorch3D's choice instead: the K nearest by
+depth among the faces within the blur radius, coverage from those K alone.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from . import tiles
+from .mesh_raster import (SMALL_BOX_HARD, Fragments, ProjectedFaces, face_boxes, face_fragments, face_planes,
+                          point_triangle_sqdist, row_spans)
+
+# soft search: a candidate whose depth logit trails the best covering face of a pixel by more than
+# this much has a colour weight below exp(-DEPTH_WINDOW) of that face's (and log p <= 0 cannot help it)
+DEPTH_WINDOW = 12.0
+
+
+@dataclass
+class SoftRanking:
+    """How soft mode ranks a pixel's candidates: by the blend logit ``log p + zinv / gamma``
+    (or by depth alone when ``by_depth``, PyTorch3D's choice: the K nearest, no rest).
+
+    zfar, znear: ``[num_images]`` the scene depth range of each image (as in ``softmax_blend``);
+    sigma, gamma: the blend's. In the search, ``log p`` of a covering face is taken as 0 (its
+    true value lies in [log 1/2, 0]); for the others it is ``logsigmoid(-d^2 / sigma)``.
+    interior: ``[F*M, 3]`` interior-edge flags (see ``face_fragments``); coverage_tol: coverage
+    closer to 1 than this counts as full (0: only where it rounds to 1); depth_window: how far
+    (in logit) behind a fully covering face a face may lie and still be searched (inf: no pruning).
+    """
+
+    zfar: torch.Tensor
+    znear: torch.Tensor
+    sigma: float
+    gamma: float
+    by_depth: bool = False
+    interior: torch.Tensor | None = None
+    coverage_tol: float = 0.0
+    depth_window: float = DEPTH_WINDOW
+
+    def depth_logit(self, image: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """``zinv / gamma`` of candidates ``[C]`` in images ``image`` ``[C]``."""
+        zf = self.zfar.index_select(0, image)
+        return (zf - depth) / ((zf - self.znear.index_select(0, image)).clamp(min=1e-12) * self.gamma)
+
+    def log_tol(self, dtype: torch.dtype) -> float:
+        """``log prod (1 - p)`` below which a pixel counts as fully covered."""
+        return math.log(self.coverage_tol) if self.coverage_tol > 0 else saturated_log_miss(dtype)
+
+
+@dataclass
+class _Faces:
+    """The searched face-views: ids ``fv`` and images ``[Fs]``, corner rows ``cols`` ``[9, Fs]``,
+    planes + inverse corner depths ``table`` ``[Fs, 12]``, corners ``xy`` ``[Fs, 3, 2]``, the
+    largest depth logit (nearest corner) ``zl_max`` ``[Fs]``."""
+
+    fv: torch.Tensor
+    image: torch.Tensor
+    cols: torch.Tensor
+    planes: list
+    table: torch.Tensor
+    xy: torch.Tensor
+    zl_max: torch.Tensor
+
+
+def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int,
+           ranking: SoftRanking) -> tiles.Selection:
+    """The soft search (see the module docstring) -> Selection with slots ``[P, K]`` and the rest."""
+    with torch.no_grad():
+        dilated = face_boxes(pf.cols, None, blur_radius, H, W)
+        fv = torch.nonzero(pf.alive & (dilated.sizes() > 0)).squeeze(1)
+        image = pf.image_of(fv)
+        cols = pf.cols.index_select(1, fv)
+        x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
+        planes = face_planes(x0, y0, x1, y1, x2, y2)
+        faces = _Faces(fv, image, cols, planes, torch.stack(planes + [1.0 / z0, 1.0 / z1, 1.0 / z2], 1),
+                       torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2),
+                       ranking.depth_logit(image, torch.minimum(torch.minimum(z0, z1), z2)))
+        dilated = tiles.PixelBoxes(image, *(t.index_select(0, fv) for t in (dilated.j0, dilated.j1, dilated.i0, dilated.i1)))
+        num_pixels = pf.num_images * H * W
+        chunks = dict(H=H, W=W, tile_size=tile_size, max_candidates=max_candidates, dtype=cols.dtype)
+        if ranking.by_depth:
+            pix, prim, depth, _ = _near(faces, dilated, blur_radius, None, ranking, chunks, keep_inside=True)
+            return tiles.select_nearest(pix, depth, prim, K, num_pixels)
+        pix1, prim1, zl1, miss1 = _covering(faces, ranking, chunks)
+        miss = torch.zeros(num_pixels, dtype=cols.dtype, device=cols.device).index_add_(0, pix1, miss1)
+        best = torch.full((num_pixels,), float("-inf"), dtype=cols.dtype, device=cols.device).scatter_reduce_(0, pix1, zl1, "amax")
+        full = miss < ranking.log_tol(cols.dtype)
+        hidden_below = torch.where(full, best - (math.log(2.0) + ranking.depth_window), torch.full_like(best, float("-inf")))
+        pix2, prim2, zl2, sqd2 = _near(faces, dilated, blur_radius, hidden_below, ranking, chunks, keep_inside=False)
+        pix = torch.cat([pix1, pix2])
+        score = torch.cat([-zl1, -(zl2 + F.logsigmoid(-sqd2 / ranking.sigma))])
+        # a slot only for faces whose colour weight is within exp(-depth_window) of the pixel's largest
+        least = torch.full((num_pixels,), float("inf"), dtype=score.dtype, device=score.device).scatter_reduce_(0, pix, score, "amin")
+        slot_ok = score <= least.index_select(0, pix) + ranking.depth_window
+        rest_ok = torch.cat([torch.ones_like(pix1, dtype=torch.bool), ~full.index_select(0, pix2)])
+        prim = torch.cat([prim1, prim2])
+        # only the few slot candidates are ranked (every pixel's best is one of them); the others
+        # join the rest unsorted
+        ok = torch.nonzero(slot_ok).squeeze(1)
+        sel = tiles.select_nearest(pix.index_select(0, ok), score.index_select(0, ok), prim.index_select(0, ok), K,
+                                   num_pixels, keep_rest=True)
+        other = torch.nonzero(~slot_ok & rest_ok).squeeze(1)
+        sel.rest_pix = torch.cat([sel.rest_pix, pix.index_select(0, other)])
+        sel.rest_prim = torch.cat([sel.rest_prim, prim.index_select(0, other)])
+        sel.most = int(torch.bincount(pix).max()) if len(pix) else 0
+        return sel
+
+
+def _covering(faces: _Faces, ranking: SoftRanking, chunks: dict):
+    """Pass 1: (pixel, face) pairs where the face covers the pixel centre -> pix, face-view, depth
+    logit, and the conservative ``log(1 - p)`` from the distance to the nearest non-interior edge
+    line, each ``[C1]``."""
+    H, W = chunks["H"], chunks["W"]
+    boxes = face_boxes(faces.cols, faces.image, 0.0, H, W)
+    span = row_spans(faces.planes, boxes, 0.0, SMALL_BOX_HARD, W)
+    out = []
+    for parts in tiles.candidate_chunks(boxes, span=span, small_box=SMALL_BOX_HARD, **chunks):
+        cand = tiles.concat(parts)
+        t = faces.table.index_select(0, cand.prim)
+        lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]
+        keep = torch.nonzero((lam >= 0).all(1)).squeeze(1)
+        lam, t, prim = lam.index_select(0, keep), t.index_select(0, keep), cand.prim.index_select(0, keep)
+        depth = 1.0 / (lam * t[:, 9:12]).sum(1).clamp(min=1e-12)
+        dl = lam / torch.sqrt(t[:, 0:9:3] ** 2 + t[:, 1:9:3] ** 2)  # [C, 3] distances to the edge lines
+        fvk = faces.fv.index_select(0, prim)
+        if ranking.interior is not None:
+            dl = torch.where(ranking.interior.index_select(0, fvk), torch.full_like(dl, 1e2), dl)
+        dmin = dl.amin(1).clamp(max=1e2)
+        out.append((cand.pix.index_select(0, keep), fvk, ranking.depth_logit(faces.image.index_select(0, prim), depth),
+                    F.logsigmoid(-dmin * dmin / ranking.sigma)))
+    return _cat(out, 4, faces)
+
+
+def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, ranking: SoftRanking, chunks: dict,
+          keep_inside: bool):
+    """Pass 2: faces within ``radius`` of the pixel centre. Candidates whose face's largest depth
+    logit is below ``hidden_below[pix]`` are skipped first; covering pairs are left to pass 1 unless
+    ``keep_inside``. Returns pix, face-view, then depth logit and squared distance (or depth and
+    None when ``keep_inside``, PyTorch3D's ranking), each ``[C2]``."""
+    W = chunks["W"]
+    span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W)
+    out = []
+    for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
+        cand = tiles.concat(parts)
+        idx = None
+        if hidden_below is not None:
+            idx = torch.nonzero(faces.zl_max.index_select(0, cand.prim) >= hidden_below.index_select(0, cand.pix)).squeeze(1)
+            cand = tiles.Candidates(*(getattr(cand, k).index_select(0, idx) for k in ("prim", "pix", "x", "y")))
+        t = faces.table.index_select(0, cand.prim)
+        lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]
+        inside = (lam >= 0).all(1)
+        fo = faces.xy.index_select(0, cand.prim)
+        sqd = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x, cand.y)
+        keep = (inside | (sqd <= radius**2)) if keep_inside else (~inside & (sqd <= radius**2))
+        keep = torch.nonzero(keep).squeeze(1)
+        lam, t, prim = lam.index_select(0, keep).clamp(min=0), t.index_select(0, keep), cand.prim.index_select(0, keep)
+        depth = 1.0 / ((lam / lam.sum(1, keepdim=True)) * t[:, 9:12]).sum(1).clamp(min=1e-12)
+        fvk, pix = faces.fv.index_select(0, prim), cand.pix.index_select(0, keep)
+        if keep_inside:
+            out.append((pix, fvk, depth, depth))
+        else:
+            out.append((pix, fvk, ranking.depth_logit(faces.image.index_select(0, prim), depth), sqd.index_select(0, keep)))
+    pix, prim, a, b = _cat(out, 4, faces)
+    return pix, prim, a, (None if keep_inside else b)
+
+
+def _cat(parts: list[tuple], n: int, faces: _Faces) -> tuple:
+    if not parts:
+        ref = faces.table
+        return (torch.zeros(0, dtype=torch.long, device=ref.device), torch.zeros(0, dtype=torch.long, device=ref.device),
+                *(torch.zeros(0, dtype=ref.dtype, device=ref.device) for _ in range(n - 2)))
+    return tuple(torch.cat([p[i] for p in parts]) for i in range(n))
+
+
+def saturated_log_miss(dtype: torch.dtype) -> float:
+    """``log prod (1 - p)`` below which soft coverage ``1 - prod (1 - p)`` rounds to exactly 1."""
+    return math.log(torch.finfo(dtype).eps) - 1.0
+
+
+def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, slots_log_miss: torch.Tensor, ranking: SoftRanking, *,
+                  H: int, W: int) -> torch.Tensor:
+    """Coverage of the candidates beyond the K slots: ``sum log(1 - p)`` per active pixel ``[P]``.
+
+    Soft coverage is ``1 - prod (1 - p)`` over *every* face within the blur radius, not only the
+    K that hold colour slots, so it does not depend on K. Only pixels whose slots
+    (``slots_log_miss`` ``[P]``, their ``sum log(1 - p)``) leave more than
+    ``ranking.coverage_tol`` uncovered need the rest (silhouette rims, occlusion contours); there
+    the rest is recomputed differentiably, flat (one face per entry). Elsewhere it is 0, which
+    changes coverage by less than ``coverage_tol``.
+    """
+    P = len(sel.pix)
+    out = torch.zeros(P, dtype=pf.vert_xy.dtype, device=pf.vert_xy.device)
+    if sel.rest_pix is None or len(sel.rest_pix) == 0:
+        return out
+    with torch.no_grad():
+        rim = slots_log_miss.detach() > ranking.log_tol(slots_log_miss.dtype)
+        owner = torch.searchsorted(sel.pix, sel.rest_pix)
+        keep = torch.nonzero(rim.index_select(0, owner)).squeeze(1)
+    if len(keep) == 0:
+        return out
+    rest = tiles.Selection(sel.rest_pix.index_select(0, keep), sel.rest_prim.index_select(0, keep).unsqueeze(1))
+    d = face_fragments(pf, rest, H=H, W=W, need_bary=False, need_dist=True, interior_edge=ranking.interior).dist[:, 0]
+    return out.index_add(0, owner.index_select(0, keep), torch.nn.functional.logsigmoid(d / ranking.sigma))
+
+
+def packed_slots(sel: tiles.Selection) -> tuple[tiles.Selection, torch.Tensor]:
+    """The used slots of ``sel`` one per row: (Selection with pix ``[S]``, prim ``[S, 1]``; owner ``[S]``,
+    the active-pixel index of each row). Soft mode shades and blends only these."""
+    K = sel.prim.shape[1]
+    used = sel.occupied()
+    owner = torch.div(used, K, rounding_mode="floor")
+    return tiles.Selection(sel.pix.index_select(0, owner), sel.prim.reshape(-1).index_select(0, used).unsqueeze(1)), owner
