@@ -158,6 +158,9 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
     ``keep_inside``. Returns pix, face-view, then depth logit and squared distance (or depth and
     None when ``keep_inside``, PyTorch3D's ranking), each ``[C2]``."""
     W = chunks["W"]
+    if hidden_below is not None:
+        hidden = _hidden_faces(faces, boxes, hidden_below, chunks["H"], W)
+        boxes = tiles.PixelBoxes(boxes.image, boxes.j0, torch.where(hidden, boxes.j0 - 1, boxes.j1), boxes.i0, boxes.i1)
     span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W)
     out = []
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
@@ -182,6 +185,34 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
             out.append((pix, fvk, ranking.depth_logit(faces.image.index_select(0, prim), depth), sqd.index_select(0, keep)))
     pix, prim, a, b = _cat(out, 4, faces)
     return pix, prim, a, (None if keep_inside else b)
+
+
+# screen tiles of the hidden-face test: a face is skipped when it is hidden in every tile its box touches
+HIDDEN_TILE = 8
+
+
+def _hidden_faces(faces: _Faces, boxes: tiles.PixelBoxes, hidden_below: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """``[Fs]`` True for faces hidden in every pixel of their (dilated) box: the face's largest depth
+    logit is below ``hidden_below`` ``[num_images * H * W]`` everywhere there. Tested per
+    ``HIDDEN_TILE`` tile (the minimum over its pixels) for boxes of up to 3 x 3 tiles; larger
+    boxes are never skipped here."""
+    T = HIDDEN_TILE
+    nty, ntx = -(-H // T), -(-W // T)
+    hb = hidden_below.view(-1, H, W)
+    hb = F.pad(hb, (0, ntx * T - W, 0, nty * T - H), value=float("-inf"))
+    tile_min = hb.view(-1, nty, T, ntx, T).amin((2, 4))  # [images, nty, ntx]
+    ty0, ty1 = torch.div(boxes.i0, T, rounding_mode="floor"), torch.div(boxes.i1, T, rounding_mode="floor")
+    tx0, tx1 = torch.div(boxes.j0, T, rounding_mode="floor"), torch.div(boxes.j1, T, rounding_mode="floor")
+    flat = tile_min.reshape(-1)
+    base = boxes.image * (nty * ntx)
+    least = torch.full_like(faces.zl_max, float("inf"))
+    for dy in range(3):
+        ty = torch.minimum(ty0 + dy, ty1)
+        for dx in range(3):
+            tx = torch.minimum(tx0 + dx, tx1)
+            least = torch.minimum(least, flat.index_select(0, base + ty * ntx + tx))
+    small = (ty1 - ty0 <= 2) & (tx1 - tx0 <= 2)
+    return small & (faces.zl_max < least)
 
 
 def _cat(parts: list[tuple], n: int, faces: _Faces) -> tuple:
