@@ -139,3 +139,14 @@ class PackedShapes(Dataset):
 
     def __getitem__(self, i: int) -> dict:
         return self.item(i)
+
+
+
+def cached_arrays(path: Path, settings: dict, keys, check, build) -> dict[str, np.ndarray]:
+    """The arrays cached at ``path`` (see ``load_npz``), or ``build()``'s, checked and then cached atomically."""
+    arrays = load_npz(path, settings, keys, check)
+    if arrays is None:
+        arrays = build()
+        check(arrays)
+        save_npz_atomic(path, arrays, settings)
+    return arrays

@@ -30,7 +30,7 @@ import torch
 import trimesh
 
 from .mesh_io import normalize_unit_sphere, zup_to_yup
-from .packed import CacheWarning, PackedShapes, load_npz, sample_surface, save_npz_atomic, validate  # noqa: F401 (CacheWarning re-exported)
+from .packed import CacheWarning, PackedShapes, cached_arrays, sample_surface, validate  # noqa: F401 (CacheWarning re-exported)
 
 GEOMETRY_VERSION = "1"  # bump whenever a builder changes: old caches then miss
 SPLITS = ("train", "val", "test")
@@ -379,11 +379,8 @@ class SyntheticShapes(PackedShapes):
                          "seed": int(seed), "rotate": rotate, "max_faces": int(max_faces), "num_points": int(num_points)}
         self.cache_path = cache_file(root_cache_dir, "synthetic", self.settings)
         n = count * len(CLASSES)
-        arrays = load_npz(self.cache_path, self.settings, ARRAYS, lambda a: _validate(a, n, int(num_points)))
-        if arrays is None:
-            arrays = generate_split(split, count, int(seed), rotate, int(max_faces), int(num_points), progress)
-            _validate(arrays, n, int(num_points))
-            save_npz_atomic(self.cache_path, arrays, self.settings)
+        arrays = cached_arrays(self.cache_path, self.settings, ARRAYS, lambda a: _validate(a, n, int(num_points)),
+                               lambda: generate_split(split, count, int(seed), rotate, int(max_faces), int(num_points), progress))
         super().__init__(arrays, CLASSES, split, as_points)
 
     def __getitem__(self, i: int) -> dict:

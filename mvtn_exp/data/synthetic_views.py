@@ -39,7 +39,7 @@ import torch
 import trimesh
 
 from .mesh_io import normalize_unit_sphere
-from .packed import PACKED_ARRAYS, PackedShapes, load_npz, pack, sample_surface, save_npz_atomic, validate
+from .packed import PACKED_ARRAYS, PackedShapes, cached_arrays, pack, sample_surface, validate
 from .synthetic import SPLITS, Part, _box, _check, _outward, _tm, build_shape, cache_file, random_rotation, split_count
 
 GEOMETRY_VERSION = "1"  # bump whenever a builder changes: old caches then miss
@@ -193,11 +193,8 @@ class SyntheticViews(PackedShapes):
                          "seed": int(seed), "rotate": rotate, "max_faces": int(max_faces), "num_points": int(num_points)}
         self.cache_path = cache_file(root_cache_dir, "synthetic_views", self.settings)
         n = count * len(CLASSES)
-        arrays = load_npz(self.cache_path, self.settings, PACKED_ARRAYS + EXTRA, lambda a: _validate(a, n, int(num_points)))
-        if arrays is None:
-            arrays = generate_split(split, count, int(seed), rotate, int(max_faces), int(num_points), progress)
-            _validate(arrays, n, int(num_points))
-            save_npz_atomic(self.cache_path, arrays, self.settings)
+        arrays = cached_arrays(self.cache_path, self.settings, PACKED_ARRAYS + EXTRA, lambda a: _validate(a, n, int(num_points)),
+                               lambda: generate_split(split, count, int(seed), rotate, int(max_faces), int(num_points), progress))
         super().__init__(arrays, CLASSES, split, as_points)
 
     def __getitem__(self, i: int) -> dict:
