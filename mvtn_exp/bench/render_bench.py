@@ -572,11 +572,11 @@ def to_markdown(res: Results) -> str:
         parts.append("## Batch of 8 shapes\n\nnot run (quick=true)")
 
     rows = [[r["shape"], r["size"], r["shading"], r["edge_pixels"], f"{100 * r['cov_off']:.2f}%", f"{r['cov_max']:.1e}",
-             f"{100 * r['rgb_off']:.2f}%", f"{r['rgb_max']:.1e}"] for r in res.edges]
+             f"{100 * r['rgb_off']:.2f}%", f"{r['rgb_max']:.1e}", r["faces"]] for r in res.edges]
     parts.append(f"## Soft edges: K=8 against every face within the blur radius (edge pixels: reference coverage in "
                  f"[{edge_error.EDGE_LO:g}, 1 - {edge_error.EDGE_LO:g}]; 4 spherical views)\n\n"
                  + md_table(["mesh", "px", "shading", "edge pixels", f"coverage off > {edge_error.TOL:g}", "max coverage error",
-                             f"colour off > {edge_error.TOL:g}", "max colour error"], rows))
+                             f"colour off > {edge_error.TOL:g}", "max colour error", "most faces in a pixel"], rows))
 
     rows = [[t["target"], t["value"], t["limit"], t["status"]] for t in res.targets]
     parts.append("## Targets\n\n" + md_table(["target", "measured", "limit", "status"], rows))
