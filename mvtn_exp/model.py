@@ -1,6 +1,8 @@
 """The assembled MVTN: selector G (points -> views), renderer R (shape, views -> images), multi-view net C."""
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from torch import nn
 
@@ -18,8 +20,10 @@ class MVTN(nn.Module):
     ``shape == "mesh"`` and a ``PointClouds`` of ``points`` when ``shape == "points"``.
     """
 
-    def __init__(self, selector: nn.Module, renderer: MultiViewRenderer, mvnet: nn.Module, shape: str = "mesh"):
+    def __init__(self, selector: nn.Module, renderer: MultiViewRenderer, mvnet: nn.Module, shape: str = "mesh",
+                 selector_points: Optional[int] = None):
         super().__init__()
+        self.selector_points = selector_points  # a learned G reads the first n points (None: all)
         if shape not in SHAPES:
             raise ValueError(f"shape={shape!r}: expected one of {list(SHAPES)}")
         self.selector, self.renderer, self.mvnet, self.shape = selector, renderer, mvnet, shape
@@ -37,7 +41,11 @@ class MVTN(nn.Module):
 
     def select(self, batch: dict):
         """G: ``batch["points"] [B, N, 3]`` -> ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world units)."""
-        return self.selector(batch["points"].to(self.device))
+        points = batch["points"]
+        n = self.selector_points
+        if n is not None and getattr(self.selector, "learned", False):
+            points = points[:, :n]  # the points are uniform surface samples in random order
+        return self.selector(points.to(self.device))
 
     def render(self, batch: dict, azim, elev, dist):
         """R: the batch's shapes seen from ``[B, M]`` views -> images ``[B, M, 3, H, W]``."""
@@ -64,6 +72,8 @@ def build_selector_from(cfg: TrainConfig) -> nn.Module:
         return build_selector("circular", cfg.views, elevation=s.elevation, distance=s.distance)
     if s.name == "spherical":
         return build_selector("spherical", cfg.views, distance=s.distance)
+    if s.name == "mvtn_poi":
+        return build_selector("mvtn_poi", cfg.views, distance=s.distance, gain=s.poi_gain)
     pe = cfg.point_encoder
     kw = dict(point_encoder=pe.name, features=pe.features, distance=s.distance, learn_distance=s.learn_distance,
               distance_bound=s.distance_bound, azim_bound=s.azim_bound, elev_bound=s.elev_bound,
@@ -83,4 +93,5 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
                             pool=cfg.mvnet.pool, dropout=cfg.mvnet.dropout)
     with torch.random.fork_rng(devices=[]):
         selector = build_selector_from(cfg)
-    return MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape)
+    return MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,
+                selector_points=cfg.selector.num_points)

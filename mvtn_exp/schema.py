@@ -29,6 +29,7 @@ POINT_ENCODER_NAMES = tuple(POINT_ENCODERS)
 BACKBONE_NAMES = tuple(BACKBONES)
 MVNET_NAMES = tuple(MULTIVIEW)
 TASKS = ("classification",)
+WARMUP_VIEWS = ("u0", "random")
 OPTIMIZERS = ("adamw",)
 SCHEDULES = ("cosine", "step")
 
@@ -124,6 +125,8 @@ class SelectorConfig:
     learn_distance: bool = False
     distance_bound: float = 1.0
     init_std: float = 0.0
+    num_points: Optional[int] = None
+    poi_gain: float = 8.0
 
     @property
     def learned(self) -> bool:
@@ -136,6 +139,9 @@ class SelectorConfig:
             if getattr(self, key) is not None:
                 at_least(f"selector.{key}", getattr(self, key), 0.0)
         at_least("selector.init_std", self.init_std, 0.0)
+        if self.num_points is not None:
+            at_least("selector.num_points", self.num_points, 1)
+        at_least("selector.poi_gain", self.poi_gain, 0.0, strict=True)
         if self.learn_distance:
             at_least("selector.distance_bound", self.distance_bound, 0.0, strict=True)
         return self
@@ -199,7 +205,10 @@ class TaskConfig:
 class OptimConfig:
     """AdamW with two parameter groups: C (``lr``) and G (``lr_selector``); G's gradient L2 norm
     is clipped to ``clip_selector`` before the step. Schedule per epoch: cosine to 0 or step
-    (x ``step_gamma`` every ``step_size`` epochs)."""
+    (x ``step_gamma`` every ``step_size`` epochs). ``selector_warmup_epochs``: for the first
+    epochs G is frozen and C trains on ``warmup_views`` (``u0``: G's initial views; ``random``:
+    new uniform random views per shape and step), then G and C train together.
+    ``selector_epochs``: G's learning rate is 0 from this epoch on (null: G trains to the end)."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -209,6 +218,9 @@ class OptimConfig:
     schedule: str = "cosine"
     step_size: int = 30
     step_gamma: float = 0.1
+    selector_warmup_epochs: int = 0
+    warmup_views: str = "u0"
+    selector_epochs: Optional[int] = None
 
     def validate(self) -> "OptimConfig":
         one_of("optim", self.name, OPTIMIZERS)
@@ -218,6 +230,10 @@ class OptimConfig:
         at_least("optim.weight_decay", self.weight_decay, 0.0)
         at_least("optim.clip_selector", self.clip_selector, 0.0, strict=True)
         at_least("optim.step_size", self.step_size, 1)
+        at_least("optim.selector_warmup_epochs", self.selector_warmup_epochs, 0)
+        one_of("optim.warmup_views", self.warmup_views, WARMUP_VIEWS)
+        if self.selector_epochs is not None:
+            at_least("optim.selector_epochs", self.selector_epochs, 0)
         return self
 
 

@@ -5,7 +5,7 @@ from mvtn_exp.render import layouts
 from mvtn_exp.selectors import (SELECTORS, VARIANTS, MVTNSelector, RandomSelector, build_selector)
 
 FIXED = ["circular", "spherical", "random"]
-LEARNED = ["mvtn_direct", "mvtn_circular", "mvtn_spherical"]
+LEARNED = ["mvtn_direct", "mvtn_circular", "mvtn_spherical", "mvtn_poi"]
 
 
 def clouds(B=3, N=32, seed=0, dtype=torch.float32):
@@ -14,7 +14,7 @@ def clouds(B=3, N=32, seed=0, dtype=torch.float32):
 
 def test_registry_names():
     assert set(SELECTORS) == set(FIXED + LEARNED)
-    allowed = "allowed: circular, mvtn_circular, mvtn_direct, mvtn_spherical, random, spherical"
+    allowed = "allowed: circular, mvtn_circular, mvtn_direct, mvtn_poi, mvtn_spherical, random, spherical"
     with pytest.raises(ValueError, match=allowed):
         build_selector("mvtn_free", 4)
 
@@ -245,3 +245,42 @@ def test_mvtn_bad_arguments_and_custom_encoder():
     enc = torch.nn.Sequential(torch.nn.Flatten(), torch.nn.LazyLinear(40))
     out = MVTNSelector(2, "direct", point_encoder=enc)(clouds(N=16))
     assert out[0].shape == (3, 2)
+
+
+def _rotation(seed=0, dtype=torch.float32):
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64))
+    return (q * torch.sign(torch.linalg.det(q))).to(dtype)
+
+
+def test_poi_starts_at_u0_and_turns_with_the_shape():
+    """mvtn_poi: exactly u0 at initialisation; its point weights do not depend on the pose, so the
+    point of interest (and, without u0, the camera) rotates with the shape."""
+    torch.manual_seed(0)
+    sel = build_selector("mvtn_poi", 4).eval()
+    pts = clouds(B=2, N=96) * torch.tensor([1.0, 0.6, 0.3])  # anisotropic: no accidental symmetry
+    azim, elev, _ = sel(pts)
+    a0, e0, _ = sel.initial_views(2)
+    assert torch.allclose(torch.remainder(azim - a0 + 180, 360) - 180, torch.zeros_like(azim), atol=1e-3)
+    assert torch.allclose(elev, e0, atol=1e-3)
+    for p in sel.scorer[-1].parameters():
+        torch.nn.init.normal_(p, std=1.0)
+    R = _rotation()
+    p1, w1 = sel.point_weights(pts)
+    p2, w2 = sel.point_weights(pts @ R.T + 0.3)  # turned and moved
+    assert torch.allclose(w1, w2, atol=1e-4)
+    assert not torch.allclose(w1, torch.full_like(w1, 1 / 96), atol=1e-4)  # the weights do depend on the points
+    q1, q2 = (torch.einsum("bnm,bnc->bmc", w, p) for w, p in ((w1, p1), (w2, p2)))
+    assert torch.allclose(q1 @ R.T, q2, atol=1e-4)
+
+
+def test_poi_gradient_reaches_the_scorer():
+    torch.manual_seed(0)
+    sel = build_selector("mvtn_poi", 1).train()
+    opt = torch.optim.SGD(sel.parameters(), lr=0.1)
+    for _ in range(3):  # the zero last layer blocks the hidden layers on the first step only
+        opt.zero_grad()
+        azim, elev, _ = sel(clouds(B=4, N=64))
+        (elev.sum() + azim.sum()).backward()
+        opt.step()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in sel.parameters())
+    assert float(sel.scorer[1].weight.grad.abs().max()) > 0

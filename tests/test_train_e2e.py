@@ -331,3 +331,47 @@ def test_learned_selector_needs_batches_of_two(cache, tmp_path):
     with pytest.raises(ValueError, match="batch_size=1"):
         as_config(tiny(cache, batch_size=1))
     assert as_config(tiny(cache, batch_size=1, **{"selector.name": "circular"})).batch_size == 1
+
+
+def test_selector_warmup_freezes_g_then_trains_it(cache, tmp_path):
+    """optim.selector_warmup_epochs: G is untouched while C warms up (on u0 or random views), then moves."""
+    _, model = tiny_model(cache)
+    init = model.state_dict()
+    sel = [f"selector.{k}" for k, _ in model.selector.named_parameters()]
+    for views in ("u0", "random"):
+        warm = train(tiny(cache, epochs=1, **{"optim.selector_warmup_epochs": 1, "optim.warmup_views": views}),
+                     tmp_path / views)
+        state = torch.load(tmp_path / views / "last.pt", weights_only=False)["model"]
+        assert max(float((state[k] - init[k]).abs().max()) for k in sel) == 0.0, views
+        assert warm["history"][0]["grad_norm_selector"] == 0.0
+    train(tiny(cache, epochs=2, **{"optim.selector_warmup_epochs": 1}), tmp_path / "after")
+    state = torch.load(tmp_path / "after" / "last.pt", weights_only=False)["model"]
+    assert max(float((state[k] - init[k]).abs().max()) for k in sel) > 1e-6
+
+
+def test_selector_epochs_freezes_g_afterwards(cache, tmp_path):
+    """optim.selector_epochs=1: G moves in epoch 1 and not after; C keeps training."""
+    train(tiny(cache, epochs=1), tmp_path / "one")
+    train(tiny(cache, epochs=2, **{"optim.selector_epochs": 1}), tmp_path / "two")
+    one, two = (torch.load(tmp_path / r / "last.pt", weights_only=False)["model"] for r in ("one", "two"))
+    _, model = tiny_model(cache)
+    sel = [f"selector.{k}" for k, _ in model.selector.named_parameters()]
+    mv = [f"mvnet.{k}" for k, _ in model.mvnet.named_parameters()]
+    assert max(float((one[k] - two[k]).abs().max()) for k in sel) == 0.0
+    assert max(float((one[k] - two[k]).abs().max()) for k in mv) > 0.0
+
+
+@pytest.mark.parametrize("renderer,warns", [({"mode": "hard"}, "renderer.mode=hard"),
+                                            ({"mode": "soft", "sigma": 1e-8}, "renderer.sigma=1e-08"),
+                                            ({"mode": "soft"}, None)])
+def test_learned_views_without_camera_gradient_warn_once(cache, tmp_path, caplog, renderer, warns):
+    import logging
+
+    cfg = tiny(cache, epochs=1, selector={"name": "mvtn_spherical"}, renderer=renderer)
+    with caplog.at_level(logging.WARNING, logger="mvtn-train"):
+        train(cfg, tmp_path / "run")
+    named = [r.getMessage() for r in caplog.records if "learned selector with" in r.getMessage()]
+    if warns is None:
+        assert named == []
+    else:
+        assert len(named) == 1 and warns in named[0]

@@ -25,6 +25,7 @@ from ..data.collate import collate_shapes
 from ..data.datasets import build_dataset
 from ..model import MVTN, build_mvtn
 from ..schema import TrainConfig
+from ..selectors.fixed import random_directions
 from ..tasks import classification
 from ..viz.plots import confusion_png
 from . import checkpoint, seeding
@@ -86,13 +87,23 @@ def lr_factor(cfg: TrainConfig, epoch: int) -> float:
     return cfg.optim.step_gamma ** (epoch // cfg.optim.step_size)
 
 
+def group_factor(cfg: TrainConfig, name: str, epoch: int) -> float:
+    """``lr_factor`` for parameter group ``name`` ("mvnet" | "selector"): G's is 0 from epoch
+    ``optim.selector_epochs`` on (G frozen, C goes on training on G's views)."""
+    stop = cfg.optim.selector_epochs
+    if name == "selector" and stop is not None and epoch >= stop:
+        return 0.0
+    return lr_factor(cfg, epoch)
+
+
 def make_optimizer(cfg: TrainConfig, model: MVTN):
     groups = model.parameter_groups()
     params = [{"params": groups["mvnet"], "lr": cfg.optim.lr, "name": "mvnet"}]
     if groups["selector"]:
         params.append({"params": groups["selector"], "lr": cfg.optim.lr_selector, "name": "selector"})
     opt = torch.optim.AdamW(params, lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: lr_factor(cfg, e))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, [lambda e, n=g["name"]: group_factor(cfg, n, e) for g in params])
     return opt, sched
 
 
@@ -106,13 +117,24 @@ def _grad_norm(params) -> float:
 
 
 def view_offsets(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
-    """Mean |u - u0| in degrees of predicted views ``[N, M]`` (0 for fixed selectors)."""
+    """Mean |u - u0| in degrees of predicted views ``[N, M]`` (azimuth modulo 360; 0 for fixed selectors)."""
     init = getattr(model.selector, "initial_views", None)
     if init is None or azim.numel() == 0:
         return {"view_offset_azim": 0.0, "view_offset_elev": 0.0}
     a0, e0, _ = init(1)
-    return {"view_offset_azim": float((azim - a0.cpu()).abs().mean()),
+    d_azim = torch.remainder(azim - a0.cpu() + 180.0, 360.0) - 180.0  # the same camera 360 deg apart
+    return {"view_offset_azim": float(d_azim.abs().mean()),
             "view_offset_elev": float((elev - e0.cpu()).abs().mean())}
+
+
+def warmup_views(model: MVTN, batch: dict, cfg: TrainConfig):
+    """Views of a warm-up step (G frozen): G's initial views u0, or new uniform random views per shape."""
+    B, M = batch["points"].shape[0], cfg.views
+    if cfg.optim.warmup_views == "random":
+        azim, elev = random_directions((B, M))
+        azim, elev = azim.float().to(model.device), elev.float().to(model.device)
+        return azim, elev, torch.full_like(azim, cfg.selector.distance)
+    return tuple(t.to(model.device) for t in model.selector.initial_views(B))
 
 
 class _Epoch:
@@ -135,6 +157,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     groups = model.parameter_groups()
     all_params = groups["mvnet"] + groups["selector"]
     acc = _Epoch()
+    warm = bool(groups["selector"]) and epoch < cfg.optim.selector_warmup_epochs  # G frozen, C alone
     bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=not cfg.logger.progress)
     it = iter(bar)
     while True:
@@ -144,7 +167,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
             break
         labels = batch["labels"].to(model.device)
         with timer.stage("selector"):
-            views = model.select(batch)
+            views = warmup_views(model, batch, cfg) if warm else model.select(batch)
         with timer.stage("render"):
             images = model.render(batch, *views)
         with timer.stage("backbone"):
@@ -194,7 +217,7 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict) -> 
     start = int(state["epoch"]) + 1
     # the schedule is a function of (epoch, epochs): re-derive it (epochs may have grown)
     for g, base in zip(opt.param_groups, sched.base_lrs):
-        g["lr"] = base * lr_factor(cfg, start)
+        g["lr"] = base * group_factor(cfg, g["name"], start)
     sched.last_epoch = start
     seeding.set_rng_state(state["rng"])
     src_best = Path(cfg.ckpt_path).with_name("best.pt")
@@ -223,10 +246,9 @@ def train(cfg, run_dir) -> dict:
     run_dir.mkdir(parents=True, exist_ok=True)
     device = torch.device(cfg.device)
     cfg_dict = config_dict(cfg)
-    if cfg.selector.learned and cfg.dataset.shape == "mesh" and cfg.renderer.mode == "hard" \
-            and cfg.renderer.shading != "smooth":
-        log.warning("learned selector with renderer.mode=hard and flat shading: images are piecewise constant in "
-                    "the camera, so G gets almost no useful gradient (measured); use renderer=soft")
+    problem = cfg.renderer.camera_gradient_problem() if cfg.selector.learned and cfg.dataset.shape == "mesh" else None
+    if problem:
+        log.warning("learned selector with %s", problem)
 
     resume = None
     if cfg.ckpt_path:

@@ -10,6 +10,7 @@ from typing import Callable
 from mvtn_exp.selectors.fixed import (CircularSelector, RandomSelector, SphericalSelector, ViewSelector,
                                       check_views)
 from mvtn_exp.selectors.mvtn import VARIANTS, MVTNSelector
+from mvtn_exp.selectors.poi import PointOfInterestSelector
 
 
 def mvtn_direct(views: int, **kw) -> MVTNSelector:
@@ -34,6 +35,7 @@ SELECTORS: dict[str, Callable[..., ViewSelector]] = {
     "mvtn_direct": mvtn_direct,
     "mvtn_circular": mvtn_circular,
     "mvtn_spherical": mvtn_spherical,
+    "mvtn_poi": PointOfInterestSelector,
 }
 
 
@@ -47,5 +49,5 @@ def build_selector(name: str, views: int, **kw) -> ViewSelector:
 
 __all__ = [
     "SELECTORS", "VARIANTS", "CircularSelector", "MVTNSelector", "RandomSelector", "SphericalSelector",
-    "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct", "mvtn_spherical",
+    "PointOfInterestSelector", "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct", "mvtn_spherical",
 ]
