@@ -2,10 +2,10 @@
 
 Search (``search_faces``): all faces of all views are projected at once; faces behind the near
 plane, outside the frustum, of zero screen area, and (optionally) back-facing are culled; the
-rest go through the tile search of ``tiles.py``. Only the winners are then recomputed with
-autograd (``face_fragments``): screen and perspective-correct barycentrics, depth and the signed
-squared distance used for soft edges. Backward memory therefore grows with pixels x K, not with
-pixels x faces.
+rest go through the tile search of ``tiles.py`` (soft mode: ``soft_search.py``, built on the
+pieces here). Only the winners are then recomputed with autograd (``face_fragments``): screen and
+perspective-correct barycentrics, depth and the signed squared distance used for soft edges.
+Backward memory therefore grows with the kept (pixel, face) pairs, not with pixels x faces.
 
 Faces crossing the near plane are culled, not clipped (documented limitation).
 """
@@ -200,13 +200,12 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
         x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
         planes = face_planes(x0, y0, x1, y1, x2, y2)
         iz = [1.0 / z0, 1.0 / z1, 1.0 / z2]
-        small_box = SMALL_BOX_HARD if blur_radius == 0 else tiles.SMALL_BOX
-        span = row_spans(planes, boxes, blur_radius, small_box, W)
+        span = row_spans(planes, boxes, 0.0, SMALL_BOX_HARD, W)
         num_pixels = pf.num_images * H * W
         picks = []
         table = torch.stack(planes + iz, 1)  # [Fs, 12]: barycentric planes, inverse corner depths
         # faces covering each pixel, depth from the barycentric planes
-        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, small_box):
+        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, SMALL_BOX_HARD):
             cand = tiles.concat(parts)
             t = table.index_select(0, cand.prim)
             lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]

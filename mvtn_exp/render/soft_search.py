@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from . import tiles
-from .mesh_raster import (SMALL_BOX_HARD, Fragments, ProjectedFaces, face_boxes, face_fragments, face_planes,
+from .mesh_raster import (SMALL_BOX_HARD, ProjectedFaces, face_boxes, face_fragments, face_planes,
                           point_triangle_sqdist, row_spans)
 
 # soft search: a candidate whose depth logit trails the best covering face of a pixel by more than
