@@ -8,7 +8,7 @@ naming the key and the allowed values. Angles are degrees; the world is Y-up.
 Group -> schema: dataset -> DatasetConfig, renderer -> RendererConfig (``render/config.py``),
 selector -> SelectorConfig, point_encoder -> PointEncoderConfig, backbone -> BackboneConfig,
 mvnet -> MVNetConfig, task -> TaskConfig, optim -> OptimConfig, logger -> LoggerConfig,
-paths -> PathsConfig.
+paths -> PathsConfig; ``augment`` (AugmentConfig) has no group files: set ``augment.rotate=so3``.
 """
 from __future__ import annotations
 
@@ -241,6 +241,21 @@ class OptimConfig:
 
 
 @dataclass
+class AugmentConfig:
+    """Training-time augmentation, drawn from the training seed's RNG (so resume stays exact).
+
+    ``rotate``: every training shape is turned by a new random rotation at every step, points and
+    mesh together (none | y: uniform about the vertical axis | so3: uniform over SO(3)). Validation
+    and test shapes are never turned."""
+
+    rotate: str = "none"
+
+    def validate(self) -> "AugmentConfig":
+        one_of("augment.rotate", self.rotate, ROTATIONS)
+        return self
+
+
+@dataclass
 class LoggerConfig:
     """Progress bars and TensorBoard (``<run>/tb``): scalars every ``log_every`` steps, a view grid
     and view histograms every epoch."""
@@ -290,6 +305,7 @@ class TrainConfig:
     mvnet: MVNetConfig = field(default_factory=MVNetConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     paths: PathsConfig = field(default_factory=PathsConfig)
 
@@ -303,7 +319,7 @@ class TrainConfig:
         if not (self.device == "cpu" or self.device.startswith("cuda")):
             raise ValueError(f"device={self.device!r}: expected cpu, cuda or cuda:N")
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
-                     self.optim, self.logger):
+                     self.optim, self.augment, self.logger):
             part.validate()
         if self.renderer.image_size != self.image_size:
             raise ValueError(f"renderer.image_size={self.renderer.image_size} differs from image_size={self.image_size}: "

@@ -73,6 +73,7 @@ def test_top_level_keys_reach_the_parts():
     (["selector=nope"], "available options for selector"),
     (["dataset.rotate=sideways"], "dataset.rotate"),
     (["optim.schedule=linear"], "optim.schedule"),
+    (["augment.rotate=sideways"], "augment.rotate"),
     (["renderer.mode=wire"], "renderer.mode"),
     (["-m", "views=1,0"], "views=0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),

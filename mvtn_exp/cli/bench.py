@@ -2,7 +2,7 @@
 
 Examples: ``mvtn-bench`` (full grid, a few minutes on 2 CPU cores), ``mvtn-bench quick=true``
 (64 px, M in {1, 4}: seconds), ``mvtn-bench device=cuda repeats=10 threads=4``.
-Files go into the Hydra run directory (``outputs/bench/runs/<timestamp>/``); the last printed line
+Files go into the Hydra run directory (``outputs/bench/runs/<time>-<pid>/``); the last printed line
 is the path of bench.md. See ``mvtn_exp.bench.render_bench`` for what is measured.
 """
 from __future__ import annotations

@@ -2,7 +2,7 @@
 evaluate a checkpoint written by ``mvtn-train``.
 
 The model is rebuilt from the config stored in the checkpoint. Writes metrics.json, confusion.json
-and confusion.png under ``outputs/eval/runs/<time>``; the last printed line is metrics.json's path.
+and confusion.png under ``outputs/eval/runs/<time>-<pid>``; the last printed line is metrics.json's path.
 """
 from __future__ import annotations
 

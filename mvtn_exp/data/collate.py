@@ -7,6 +7,8 @@ import torch
 
 from .shapes import Meshes
 
+DETAIL_KEYS = ("detail_anchor", "detail_axis", "detail_size")
+
 
 def collate_shapes(batch: Sequence[dict]) -> dict:
     """A ``DataLoader`` collate_fn: list of B items -> one batch.
@@ -15,7 +17,8 @@ def collate_shapes(batch: Sequence[dict]) -> dict:
     ``faces [F_i, 3]`` (local indices) and ``rotation [3, 3]``. Returns a dict with
     ``meshes``: packed ``Meshes`` of B shapes (``None`` when the items carry no mesh),
     ``points [B, N, 3]`` float, ``labels [B]`` long, ``names`` list[str] and, when every item has
-    one, ``rotations [B, 3, 3]``.
+    one, ``rotations [B, 3, 3]`` and the ``synthetic_views`` detail frame (``detail_anchor``,
+    ``detail_axis``, ``detail_size``, each ``[B, 3]``).
     """
     if not batch:
         raise ValueError("collate_shapes: empty batch")
@@ -34,4 +37,7 @@ def collate_shapes(batch: Sequence[dict]) -> dict:
                                          [torch.as_tensor(b["faces"], dtype=torch.long) for b in batch], names=names)
     if all("rotation" in b for b in batch):
         out["rotations"] = torch.stack([torch.as_tensor(b["rotation"]) for b in batch])
+    for key in DETAIL_KEYS:
+        if all(key in b for b in batch):
+            out[key] = torch.stack([torch.as_tensor(b[key]) for b in batch])
     return out

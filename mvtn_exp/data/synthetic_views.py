@@ -206,6 +206,14 @@ class SyntheticViews(PackedShapes):
         return item
 
 
+    def detail_seen(self, azim, elev, dist) -> np.ndarray:
+        """``[N, M]`` bool: view m of shape n (``[N, M]`` degrees / world units, dataset order and
+        poses) sees the detail (``sees_detail``)."""
+        a = self._a
+        cams = camera_positions(np.asarray(azim), np.asarray(elev), np.asarray(dist))
+        return sees_detail(a["detail_anchor"], a["detail_axis"], a["detail_size"], cams)
+
+
 # ----------------------------------------------------------------------------- visibility
 def camera_positions(azim, elev, dist=2.2) -> np.ndarray:
     """Degrees -> ``[..., 3]`` positions ``dist * (cos e sin a, sin e, cos e cos a)`` (looking at the origin)."""

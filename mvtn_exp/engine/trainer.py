@@ -27,6 +27,7 @@ from ..model import MVTN, build_mvtn
 from ..schema import TrainConfig
 from ..selectors.fixed import random_directions
 from ..tasks import classification
+from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from . import checkpoint, seeding
 from .run_logger import RunLogger
@@ -137,6 +138,29 @@ def warmup_views(model: MVTN, batch: dict, cfg: TrainConfig):
     return tuple(t.to(model.device) for t in model.selector.initial_views(B))
 
 
+def detail_report(dataset, res: dict) -> dict:
+    """For datasets that know where their class detail shows (``synthetic_views``): the share of
+    shapes of which some predicted view sees it, and the accuracy on those and on the rest; ``{}``
+    for other datasets. ``res``: a ``classification.evaluate`` result on ``dataset`` (same order)."""
+    if not hasattr(dataset, "detail_seen") or res["azim"].numel() == 0:
+        return {}
+    seen = torch.from_numpy(dataset.detail_seen(res["azim"].double().numpy(), res["elev"].double().numpy(),
+                                                res["dist"].double().numpy()).any(1))
+    right = res["pred"] == res["labels"]
+
+    def acc(mask):
+        return float(right[mask].float().mean()) if bool(mask.any()) else None
+
+    return {"detail_seen": float(seen.float().mean()), "acc_detail_seen": acc(seen), "acc_detail_unseen": acc(~seen)}
+
+
+def augment(batch: dict, cfg: TrainConfig) -> dict:
+    """Training augmentation (``cfg.augment``): a new random rotation of every shape, from torch's RNG."""
+    if cfg.augment.rotate == "none":
+        return batch
+    return turn_batch(batch, random_rotations(len(batch["points"]), cfg.augment.rotate))
+
+
 class _Epoch:
     """Running sums of one training epoch."""
 
@@ -163,6 +187,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     while True:
         with timer.stage("data"):
             batch = next(it, None)
+            if batch is not None:
+                batch = augment(batch, cfg)
         if batch is None:
             break
         labels = batch["labels"].to(model.device)
@@ -296,15 +322,17 @@ def train(cfg, run_dir) -> dict:
             sched.step()
             seconds = time.perf_counter() - t0
             offsets = view_offsets(model, val["azim"], val["elev"])
+            detail = {f"val_{k}": v for k, v in detail_report(datasets["val"], val).items()}
             history.append({"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
                             "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
                             "skipped": tr["skipped"], "clipped": tr["clipped"],
                             "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
-                            **offsets, **lrs, "seconds": seconds})
+                            **offsets, **detail, **lrs, "seconds": seconds})
             logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
                             "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
                             "views/offset_azim": offsets["view_offset_azim"],
-                            "views/offset_elev": offsets["view_offset_elev"]}, step)
+                            "views/offset_elev": offsets["view_offset_elev"],
+                            **({"views/detail_seen": detail["val_detail_seen"]} if detail else {})}, step)
             logger.histogram("views/azim", val["azim"], step)
             logger.histogram("views/elev", val["elev"], step)
             if val["images"] is not None:
@@ -318,7 +346,8 @@ def train(cfg, run_dir) -> dict:
             checkpoint.save_atomic(run_dir / "last.pt", state)
             print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
                   f"val acc {val['acc']:.3f}{' (best)' if improved else ''} | "
-                  f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | {seconds:.1f}s",
+                  f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
+                  + (f"detail seen {detail['val_detail_seen']:.2f} | " if detail else "") + f"{seconds:.1f}s",
                   flush=True)
 
         if not (run_dir / "best.pt").is_file():  # resumed at the last epoch without a best.pt
@@ -341,6 +370,7 @@ def train(cfg, run_dir) -> dict:
         "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
         "step_seconds": timer.means(), **{f"test_{k}": v for k, v in view_offsets(model, test["azim"], test["elev"]).items()},
+        **{f"test_{k}": v for k, v in detail_report(datasets["test"], test).items()},
         "history": history, "config": cfg_dict,
     }
     write_results(run_dir, metrics)

@@ -30,13 +30,13 @@ def summarize(confusion: Tensor) -> dict:
 @torch.no_grad()
 def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool = True, transform=None) -> dict:
     """Eval mode (renderer: camera light, white object): loss, ``summarize`` metrics, the confusion
-    matrix as nested lists, the predicted views ``azim`` / ``elev`` ``[N, M]`` (degrees, CPU) and the
-    ``labels [N]`` in the same order.
+    matrix as nested lists, the predicted views ``azim`` / ``elev`` / ``dist`` ``[N, M]`` (degrees,
+    world units; CPU), the ``labels [N]`` and predicted classes ``pred [N]`` in the same order.
     ``transform(batch) -> batch`` (e.g. a rotation or a crop) is applied to every batch first, so
     the selector and the renderer both see the transformed shapes."""
     model.eval()
     conf = torch.zeros(num_classes, num_classes, dtype=torch.long)
-    loss_sum, azim, elev, seen = 0.0, [], [], []
+    loss_sum, azim, elev, dist, seen, preds = 0.0, [], [], [], [], []
     first_images = None
     for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
         if transform is not None:
@@ -47,13 +47,17 @@ def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool
         pred = out["logits"].argmax(1).cpu()
         conf.index_put_((batch["labels"], pred), torch.ones_like(pred), accumulate=True)
         seen.append(batch["labels"])
+        preds.append(pred)
         azim.append(out["azim"].cpu())
         elev.append(out["elev"].cpu())
+        dist.append(torch.as_tensor(out["dist"]).expand_as(out["azim"]).cpu())
         if first_images is None:
             first_images = out["images"].cpu()
     result = summarize(conf)
     result.update(loss=loss_sum / max(result["n"], 1), confusion=conf.tolist(),
                   azim=torch.cat(azim) if azim else torch.zeros(0), elev=torch.cat(elev) if elev else torch.zeros(0),
+                  dist=torch.cat(dist) if dist else torch.zeros(0),
                   labels=torch.cat(seen) if seen else torch.zeros(0, dtype=torch.long),
+                  pred=torch.cat(preds) if preds else torch.zeros(0, dtype=torch.long),
                   images=first_images)
     return result

@@ -48,7 +48,7 @@ FACE_FLOOR = 0.01
 SLIVER = 1e-7
 
 __all__ = [
-    "DIRECTIONS", "sample_angles", "rotate_y", "y_rotation_matrix", "rotate_batch",
+    "DIRECTIONS", "sample_angles", "rotate_y", "y_rotation_matrix", "rotate_batch", "random_rotations", "turn_batch",
     "crop_plane", "crop_indices", "crop_points", "crop_mesh", "crop_batch",
 ]
 
@@ -101,27 +101,54 @@ def y_rotation_matrix(angle_deg) -> torch.Tensor:
 
 
 def rotate_batch(batch: dict, angles_deg: torch.Tensor) -> dict:
-    """New batch with shape ``b`` rotated about +Y by ``angles_deg[b]`` degrees.
+    """New batch with shape ``b`` rotated about +Y by ``angles_deg[b]`` degrees (see ``turn_batch``)."""
+    angles = torch.as_tensor(angles_deg).reshape(-1)
+    if len(angles) != len(batch["points"]):
+        raise ValueError(f"rotate_batch: {len(angles)} angles for a batch of {len(batch['points'])} shapes")
+    return turn_batch(batch, y_rotation_matrix(angles))
 
-    Rotates ``points [B, N, 3]``, every shape's mesh vertices (same angle) and, when present,
-    ``rotations [B, 3, 3]`` (composed: ``R_y @ R``, so ``verts = canonical @ R^T`` still holds).
+
+def random_rotations(n: int, mode: str, generator: torch.Generator | None = None) -> torch.Tensor:
+    """``[n, 3, 3]`` float64 rotations: identity (``none``), uniform about +Y (``y``) or uniform over
+    SO(3) (``so3``: normalised Gaussian quaternions), drawn from ``generator`` (torch's global RNG if None)."""
+    if mode == "none":
+        return torch.eye(3, dtype=torch.float64).expand(n, 3, 3).clone()
+    if mode == "y":
+        return y_rotation_matrix(sample_angles(n, 180.0, generator).to(torch.float64))
+    if mode != "so3":
+        raise ValueError(f"random_rotations: mode={mode!r}; expected none, y or so3")
+    q = torch.randn(n, 4, generator=generator, dtype=torch.float64)
+    w, x, y, z = (q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)).unbind(1)
+    rows = [(1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def turn_batch(batch: dict, R: torch.Tensor) -> dict:
+    """New batch with shape ``b`` turned by the rotation ``R[b]`` (``[B, 3, 3]``, ``p -> R p``).
+
+    Turns ``points [B, N, 3]``, every shape's mesh vertices (same matrix) and, when present,
+    ``rotations [B, 3, 3]`` (composed: ``R @ rotations``, so ``verts = canonical @ R^T`` still holds)
+    and the detail frame of ``synthetic_views`` (``detail_anchor``, ``detail_axis`` ``[B, 3]``).
     """
     points = batch["points"]
-    angles = torch.as_tensor(angles_deg).reshape(-1)
-    if len(angles) != len(points):
-        raise ValueError(f"rotate_batch: {len(angles)} angles for a batch of {len(points)} shapes")
+    if R.shape != (len(points), 3, 3):
+        raise ValueError(f"turn_batch: rotations {tuple(R.shape)} for a batch of {len(points)} shapes")
     out = dict(batch)
-    out["points"] = rotate_y(points, angles)
+    out["points"] = torch.einsum("bij,bnj->bni", R.to(points), points)
     meshes = batch.get("meshes")
     if meshes is not None:
         if len(meshes) != len(points):
-            raise ValueError(f"rotate_batch: {len(meshes)} meshes but {len(points)} point clouds")
-        per_vert = torch.repeat_interleave(angles.to(meshes.verts.device), meshes.verts_per_shape)
-        out["meshes"] = meshes.with_verts(rotate_y(meshes.verts, per_vert))
-    if batch.get("rotations") is not None:
-        R = batch["rotations"]
-        Ry = y_rotation_matrix(angles).to(device=R.device, dtype=R.dtype)
-        out["rotations"] = Ry @ R
+            raise ValueError(f"turn_batch: {len(meshes)} meshes but {len(points)} point clouds")
+        v = meshes.verts
+        per_vert = torch.repeat_interleave(R.to(device=v.device, dtype=v.dtype), meshes.verts_per_shape, dim=0)
+        out["meshes"] = meshes.with_verts(torch.einsum("vij,vj->vi", per_vert, v))
+    for key in ("rotations", "detail_anchor", "detail_axis"):
+        x = batch.get(key)
+        if x is not None:
+            Rx = R.to(device=x.device, dtype=x.dtype)
+            out[key] = Rx @ x if x.dim() == 3 else torch.einsum("bij,bj->bi", Rx, x)
     return out
 
 
