@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 import tempfile
 from pathlib import Path
 
@@ -35,14 +36,23 @@ def save_atomic(path, payload: dict) -> Path:
 
 
 def load(path, map_location="cpu") -> dict:
-    """Read a checkpoint written by ``save_atomic`` (a clear error for a missing or unreadable file)."""
+    """Read a checkpoint written by ``save_atomic`` (a clear error for a missing or unreadable file).
+
+    Always ``torch.load(weights_only=True)``: only tensors and plain Python containers are
+    unpickled, so a file carrying code (any other pickled object) is refused, never run."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r}: no such file")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=False)
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        what = str(exc).splitlines()
+        culprit = next((line.strip() for line in what if "GLOBAL" in line or "Unsupported" in line), what[0] if what else "")
+        raise CheckpointMismatch(f"checkpoint {str(path)!r} holds objects other than tensors and plain data, refused "
+                                 f"unread (only mvtn-train checkpoints of this version load safely): {culprit}") from exc
     except Exception as exc:
-        raise CheckpointMismatch(f"checkpoint {str(path)!r} cannot be read ({type(exc).__name__}: {exc})") from exc
+        first = (str(exc).splitlines() or [""])[0]
+        raise CheckpointMismatch(f"checkpoint {str(path)!r} cannot be read ({type(exc).__name__}: {first})") from exc
     if not isinstance(payload, dict) or "model" not in payload or "config" not in payload:
         raise CheckpointMismatch(f"checkpoint {str(path)!r} was not written by mvtn-train (no model/config)")
     return payload

@@ -1,0 +1,75 @@
+"""Checkpoints load with ``weights_only=True``: a file carrying code is refused and nothing runs."""
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from mvtn_exp.engine import checkpoint, seeding
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _Payload:
+    """Unpickling this runs a shell command (the attack)."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def _evil(tmp_path) -> tuple[Path, Path]:
+    marker = tmp_path / "ran"
+    path = tmp_path / "evil.pt"
+    torch.save({"model": {}, "config": {"views": 1}, "epoch": 0, "x": _Payload(marker)}, path)
+    # the file really is an attack: the unsafe loader runs it
+    probe = tmp_path / "probe"
+    torch.save({"x": _Payload(probe)}, tmp_path / "probe.pt")
+    torch.load(tmp_path / "probe.pt", weights_only=False)
+    assert probe.exists()
+    return path, marker
+
+
+def test_a_checkpoint_carrying_code_is_refused_and_nothing_runs(tmp_path):
+    path, marker = _evil(tmp_path)
+    with pytest.raises(checkpoint.CheckpointMismatch) as e:
+        checkpoint.load(path)
+    msg = str(e.value)
+    assert "\n" not in msg and str(path) in msg and "refused" in msg and "system" in msg
+    assert not marker.exists()
+
+
+def test_mvtn_eval_refuses_it_in_one_line_with_exit_2(tmp_path):
+    path, marker = _evil(tmp_path)
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.eval", f"ckpt={path}", f"hydra.run.dir={tmp_path / 'e'}"],
+                       capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert r.returncode == 2, r.stderr[-2000:]
+    err = r.stderr.strip().splitlines()
+    assert len(err) == 1 and "refused" in err[0] and str(path) in err[0], r.stderr
+    assert "Traceback" not in r.stderr and not marker.exists()
+
+
+def test_rng_state_is_plain_data_and_restores_exactly(tmp_path):
+    import random
+
+    import numpy as np
+
+    seeding.seed_everything(5)
+    state = seeding.rng_state()
+    torch.save({"rng": state}, tmp_path / "s.pt")
+    loaded = torch.load(tmp_path / "s.pt", weights_only=True)["rng"]  # no numpy objects inside
+    a = (random.random(), np.random.rand(3).tolist(), np.random.randn(), torch.rand(2).tolist())
+    seeding.set_rng_state(loaded)
+    assert (random.random(), np.random.rand(3).tolist(), np.random.randn(), torch.rand(2).tolist()) == a
+
+
+def test_weights_only_everywhere():
+    """No loader in the package unpickles arbitrary objects."""
+    hits = [str(p.relative_to(ROOT)) for p in (ROOT / "mvtn_exp").rglob("*.py")
+            if "weights_only=False" in p.read_text() or "pickle.load" in p.read_text()]
+    assert hits == []
