@@ -74,6 +74,9 @@ def test_top_level_keys_reach_the_parts():
     (["dataset.rotate=sideways"], "dataset.rotate"),
     (["optim.schedule=linear"], "optim.schedule"),
     (["augment.rotate=sideways"], "augment.rotate"),
+    (["+optim.lr_selectr=1"], "adds key 'optim.lr_selectr', which is not in the schema"),
+    (["++viewz=3"], "adds key 'viewz'"),
+    (["+renderer.sigmaa=1"], "allowed keys here"),
     (["renderer.mode=wire"], "renderer.mode"),
     (["-m", "views=1,0"], "views=0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),
@@ -88,6 +91,8 @@ def test_check_overrides_refuses(argv, needle, capsys):
 
 def test_check_overrides_accepts_good_sweeps():
     check_overrides("mvtn-train", "train", TrainConfig, ["-m", "selector=circular,spherical", "views=1,4"],
+                    validate=TrainConfig.validate)
+    check_overrides("mvtn-train", "train", TrainConfig, ["+experiment=synthetic_circular", "++optim.lr=0.01"],
                     validate=TrainConfig.validate)
 
 

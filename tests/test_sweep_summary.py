@@ -32,6 +32,8 @@ def test_summary_groups_seeds_and_counts_failures(tmp_path):
     rows = list(csv.DictReader(open(csv_path)))
     assert len(rows) == 6
     assert sorted(r["status"] for r in rows) == ["incomplete", "ok", "ok", "ok", "ok", "training diverged"]
+    assert list(rows[0])[:4] == ["job", "selector", "seed", "dataset.root"]  # one column per swept key
+    assert {(r["selector"], r["seed"]) for r in rows} == {(s, str(i)) for s in ("circular", "mvtn") for i in range(3)}
     from mvtn_exp.engine.sweep import collect
 
     aggs = {a["setting"]: a for a in aggregate(collect(tmp_path))}
@@ -44,3 +46,10 @@ def test_summary_groups_seeds_and_counts_failures(tmp_path):
     assert math.isnan(mvtn["test_view_offset_azim"])  # not reported by these jobs
     md = md_path.read_text()
     assert "| selector=circular | 3 | 0 | 0.700 ± 0.200 |" in md
+    for table in ("## Mean", "## Jobs"):  # every row of each table has the header's number of cells
+        lines = [ln for ln in md.split(table, 1)[1].split("\n\n", 2)[1].splitlines() if ln.startswith("|")]
+        assert len({ln.count("|") for ln in lines}) == 1, lines
+    from mvtn_exp.engine.sweep import failed_jobs
+
+    assert sorted(failed_jobs(tmp_path)) == ["selector=mvtn,seed=1: training diverged: non-finite loss",
+                                             "selector=mvtn,seed=2: incomplete"]

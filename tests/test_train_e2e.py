@@ -262,6 +262,20 @@ def test_cli_multirun_summary(cache, tmp_path):
     assert len(settings) == 2 and all("| 2 | 0 |" in ln for ln in settings), settings
 
 
+def test_cli_multirun_keeps_jobs_apart_and_fails_loudly(tmp_path):
+    """Jobs differing only in an excluded key (a path) get their own folders; failed jobs make the
+    sweep exit 1 naming them, after the summary is written."""
+    sweep = tmp_path / "sweep"
+    r = _cli(["-m", "+experiment=modelnet_spherical", f"paths.data_dir={tmp_path / 'a'},{tmp_path / 'b'}",
+              f"hydra.sweep.dir={sweep}"], ROOT)
+    assert r.returncode == 1, r.stderr[-2000:]
+    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
+    assert jobs == ["0_+experiment=modelnet_spherical", "1_+experiment=modelnet_spherical"], jobs
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("mvtn-train: 2 of 2 sweep jobs failed: 0_+experiment") and "not found at" in last
+    assert (sweep / "summary.csv").is_file()
+
+
 def _patched_build(monkeypatch, patch):
     import mvtn_exp.engine.trainer as trainer
 

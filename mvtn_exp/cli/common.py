@@ -3,8 +3,10 @@ line naming the key, the config file and the allowed keys or values, and exit co
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import re
 import sys
+from pathlib import Path
 from typing import Callable, Optional
 
 from omegaconf import OmegaConf
@@ -105,6 +107,25 @@ def sweep_variants(overrides: list[str]) -> list[list[str]]:
     return variants
 
 
+def unknown_added_key(override: str, schema, conf_dir: Path) -> Optional[tuple[str, str]]:
+    """``(key, message)`` when ``+key=value`` / ``++key=value`` adds a key the schema does not have
+    (Hydra would accept it silently), else None. ``+group=option`` for a config group is fine."""
+    if not override.startswith("+"):
+        return None
+    key = override.lstrip("+").split("=", 1)[0].split("@", 1)[0]
+    if key.startswith(("hydra.", "hydra/")) or key == "hydra":
+        return None
+    parts = key.split(".")
+    if len(parts) == 1 and ((conf_dir / key).is_dir() or "/" in key):
+        return None  # a config group (e.g. +experiment=NAME)
+    allowed = _allowed_keys(schema, parts[:-1])
+    top = [f.name for f in dataclasses.fields(schema)] if len(parts) == 1 else allowed
+    if top and parts[-1] not in top:
+        return key, (f"{override!r} adds key '{key}', which is not in the schema "
+                     f"(allowed keys here: {', '.join(sorted(top))})")
+    return None
+
+
 def check_overrides(prog: str, config_name: str, schema, argv: list[str],
                     validate: Optional[Callable] = None, config_module: str = CONF_MODULE) -> None:
     """Compose ``config_name`` with the command-line overrides (each value of a ``-m`` sweep) and
@@ -115,6 +136,13 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
     from hydra import compose, initialize_config_module
 
     overrides = [a for a in argv if a not in MULTIRUN_FLAGS and not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    conf_dir = config_module.replace(".", "/")
+    package_conf = Path(importlib.import_module(config_module).__file__).parent
+    for o in overrides:
+        bad = unknown_added_key(o, schema, package_conf)
+        if bad:
+            print(f"{prog}: config error in {conf_dir}/{config_name}.yaml: {bad[1]}", file=sys.stderr)
+            sys.exit(2)
     choices: dict = {}
     try:
         variants = sweep_variants(overrides) if any(a in MULTIRUN_FLAGS for a in argv) else [overrides]
@@ -135,6 +163,5 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
         if "full_key:" not in str(cause):
             cause = exc
         key, msg = describe(cause, schema)
-        conf_dir = config_module.replace(".", "/")
         print(f"{prog}: config error in {_config_file(key, choices, config_name, conf_dir)}: {msg}", file=sys.stderr)
         sys.exit(2)

@@ -6,6 +6,7 @@ import csv
 import json
 import math
 import re
+import sys
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
@@ -77,21 +78,29 @@ def _fmt(v) -> str:
 
 
 def write_summary(sweep_dir) -> tuple[Path, Path]:
-    """Write ``summary.csv`` (one row per job) and ``summary.md`` (per job and mean +- std per
-    setting) into ``sweep_dir``; returns their paths."""
+    """Write ``summary.csv`` (one row per job, one column per overridden key, then status and
+    metrics) and ``summary.md`` (per job and mean +- std per setting) into ``sweep_dir``; returns
+    their paths."""
     sweep_dir = Path(sweep_dir)
     rows = collect(sweep_dir)
     csv_path, md_path = sweep_dir / "summary.csv", sweep_dir / "summary.md"
-    fields = ["job", "status", *COLUMNS, "error"]
+    keys: list[str] = []  # one column per overridden key, in first-seen order
+    for r in rows:
+        for o in r["overrides"]:
+            k = o.split("=", 1)[0].lstrip("+~")
+            if "=" in o and k not in keys:
+                keys.append(k)
+    fields = ["job", *keys, "status", *COLUMNS, "error"]
     with open(csv_path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
         for r in rows:
-            w.writerow({k: r.get(k, "") for k in fields})
+            values = {o.split("=", 1)[0].lstrip("+~"): o.split("=", 1)[1] for o in r["overrides"] if "=" in o}
+            w.writerow({**{k: r.get(k, "") for k in fields if k not in keys}, **{k: values.get(k, "") for k in keys}})
     aggs = aggregate(rows)
     lines = ["# Sweep summary", "", f"{len(rows)} jobs in `{sweep_dir}`.", "",
              "## Mean +- std over seeds (sample std)", "",
-             "| setting | runs | failed | test acc | mean class acc | best val acc | s/epoch | |u-u0| azim | |u-u0| elev |",
+             "| setting | runs | failed | test acc | mean class acc | best val acc | s/epoch | mean view offset azim (deg) | mean view offset elev (deg) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for a in aggs:
         cells = [f"{a[k]:.3f} ± {a[k + '_std']:.3f}" for k in COLUMNS]
@@ -104,12 +113,25 @@ def write_summary(sweep_dir) -> tuple[Path, Path]:
     return csv_path, md_path
 
 
+def failed_jobs(sweep_dir) -> list[str]:
+    """``"<job>: <status>[: <error>]"`` for every job of the sweep that did not finish with metrics."""
+    return [f"{r['job']}: {r.get('status')}" + (f": {r['error']}" if r.get("error") else "")
+            for r in collect(sweep_dir) if r.get("status") != "ok"]
+
+
 class SweepSummary(Callback):
-    """Hydra callback: write the sweep summary when a multirun ends."""
+    """Hydra callback: write the sweep summary when a multirun ends; exit 1 naming the failed jobs
+    (after the summary is written) when any job failed."""
 
     def on_multirun_end(self, config, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
-        if sweep_dir.is_dir():
-            _, md = write_summary(sweep_dir)
-            print(md.read_text())
-            print(md)
+        if not sweep_dir.is_dir():
+            return
+        _, md = write_summary(sweep_dir)
+        print(md.read_text())
+        print(md)
+        failed = failed_jobs(sweep_dir)
+        if failed:
+            print(f"mvtn-train: {len(failed)} of {len(collect(sweep_dir))} sweep jobs failed: " + "; ".join(failed),
+                  file=sys.stderr)
+            sys.exit(1)
