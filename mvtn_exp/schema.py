@@ -34,6 +34,23 @@ OPTIMIZERS = ("adamw",)
 SCHEDULES = ("cosine", "step")
 
 
+def check_device(key: str, device: str) -> None:
+    """``cpu``, ``cuda`` or ``cuda:N``, and a CUDA device must exist on this machine."""
+    import re
+
+    import torch
+
+    if not (device == "cpu" or re.fullmatch(r"cuda(:\d+)?", device)):
+        raise ValueError(f"{key}={device!r}: expected cpu, cuda or cuda:N")
+    if device.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"{key}={device!r}: CUDA is not available on this machine (torch {torch.__version__}, "
+                             "built with CUDA " + str(torch.version.cuda) + "); use device=cpu")
+        index = int(device.split(":")[1]) if ":" in device else 0
+        if index >= torch.cuda.device_count():
+            raise ValueError(f"{key}={device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+
+
 def one_of(key: str, value: Any, allowed) -> None:
     if value not in allowed:
         raise ValueError(f"{key}={value!r}: expected one of {', '.join(map(str, allowed))}")
@@ -316,8 +333,7 @@ class TrainConfig:
         if self.selector.learned and self.batch_size < 2:
             raise ValueError(f"batch_size={self.batch_size}: a learned selector (BatchNorm in G) trains on batches "
                              "of at least 2 shapes")
-        if not (self.device == "cpu" or self.device.startswith("cuda")):
-            raise ValueError(f"device={self.device!r}: expected cpu, cuda or cuda:N")
+        check_device("device", self.device)
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
                      self.optim, self.augment, self.logger):
             part.validate()
@@ -388,6 +404,8 @@ class EvalConfig:
         one_of("split", self.split, ("train", "val", "test"))
         one_of("task", self.task, EVAL_TASKS)
         one_of("robustness", self.robustness, ROBUSTNESS)
+        if self.device is not None:
+            check_device("device", self.device)
         if self.task == "retrieval" and self.split == "train":
             raise ValueError("split=train: retrieval queries the train split as its database; use split=test or val")
         if self.task == "retrieval" and self.robustness != "none":

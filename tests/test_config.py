@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
@@ -77,6 +78,9 @@ def test_top_level_keys_reach_the_parts():
     (["+optim.lr_selectr=1"], "adds key 'optim.lr_selectr', which is not in the schema"),
     (["++viewz=3"], "adds key 'viewz'"),
     (["+renderer.sigmaa=1"], "allowed keys here"),
+    (["device=gpu"], "expected cpu, cuda or cuda:N"),
+    pytest.param(["device=cuda"], "CUDA is not available on this machine",
+                 marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
     (["renderer.mode=wire"], "renderer.mode"),
     (["-m", "views=1,0"], "views=0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),
