@@ -194,6 +194,8 @@ def test_cli_train_then_eval(cache, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     last = r.stdout.strip().splitlines()[-1]
     assert Path(last) == run / "metrics.json" and Path(last).is_file()
+    record = (run / "train.log").read_text()  # the console lines are in the run's log too
+    assert "epoch 1/1: train loss" in record and "test accuracy" in record
     assert list((run / "tb").glob("events.out.tfevents.*")), "no TensorBoard event file"
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -243,6 +245,7 @@ def test_cli_real_dataset_missing(tmp_path):
               f"hydra.run.dir={tmp_path / 'run'}"], ROOT)
     assert r.returncode == 2
     assert "dataset modelnet40 not found at" in r.stderr and "expected layout" in r.stderr
+    assert "dataset modelnet40 not found at" in (tmp_path / "run" / "train.log").read_text()  # the record says why
 
 
 def test_cli_multirun_summary(cache, tmp_path):

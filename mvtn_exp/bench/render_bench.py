@@ -397,7 +397,7 @@ class Bench:
         t0 = time.perf_counter()
         self.res.meta = environment(self.opts, self.dev)
         jobs = self.jobs()
-        bar = tqdm(jobs, desc="mvtn-bench", unit="cfg", file=sys.stderr, disable=not self.opts.progress, dynamic_ncols=True)
+        bar = tqdm(jobs, desc="mvtn-bench", unit="cfg", file=sys.stderr, disable=None if self.opts.progress else True, dynamic_ncols=True)
         for label, job in bar:
             bar.set_postfix_str(label, refresh=True)
             job()

@@ -36,6 +36,8 @@ def _app(cfg) -> None:
             TrainingDiverged) as exc:
         kind = "training diverged" if isinstance(exc, TrainingDiverged) else "error"
         print(f"mvtn-train: {kind}: {exc}", file=sys.stderr)
+        with open(run_dir / "train.log", "a") as f:  # the run's record keeps the reason too
+            f.write(f"mvtn-train: {kind}: {exc}\n")
         if hc.mode == RunMode.MULTIRUN:  # record it for the sweep summary and go on with the next job
             (run_dir / STATUS_FILE).write_text(json.dumps({"status": kind, "error": str(exc)}))
             return

@@ -117,7 +117,7 @@ def prepare_split(files: list[tuple[Path, int]], cache_path: Path, settings: dic
     parts.mkdir(parents=True, exist_ok=True)
     (parts / "settings.json").write_text(json.dumps(settings, sort_keys=True))
     shapes, skipped = [], []
-    for path, label in tqdm(files, desc=f"prepare {cache_path.stem}", unit="shape", disable=not progress, leave=False):
+    for path, label in tqdm(files, desc=f"prepare {cache_path.stem}", unit="shape", disable=None if progress else True, leave=False):
         part = _part_path(parts, path)
         if part.exists():
             try:

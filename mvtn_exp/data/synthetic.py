@@ -302,7 +302,7 @@ def generate_split(split: str, count: int, seed: int, rotate: str, max_faces: in
 
     sid = SPLITS.index(split)
     out = {k: [] for k in ARRAYS}
-    bar = tqdm(total=count * len(CLASSES), desc=f"synthetic {split}", unit="shape", disable=not progress, leave=False)
+    bar = tqdm(total=count * len(CLASSES), desc=f"synthetic {split}", unit="shape", disable=None if progress else True, leave=False)
     for label, cls in enumerate(CLASSES):
         code = zlib.crc32(cls.encode())
         for k in range(count):

@@ -152,7 +152,7 @@ def generate_split(split: str, count: int, seed: int, rotate: str, max_faces: in
     from tqdm.auto import tqdm
 
     shapes = []
-    bar = tqdm(total=count * len(CLASSES), desc=f"synthetic_views {split}", unit="shape", disable=not progress, leave=False)
+    bar = tqdm(total=count * len(CLASSES), desc=f"synthetic_views {split}", unit="shape", disable=None if progress else True, leave=False)
     for label, cls in enumerate(CLASSES):
         for k in range(count):
             name = f"{cls}_{split}_{k:04d}"

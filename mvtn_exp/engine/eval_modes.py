@@ -72,7 +72,7 @@ def features(model, loader, progress: bool, desc: str) -> tuple[np.ndarray, np.n
     """Shape features (the layer before the classifier) ``[N, D]`` and labels ``[N]``."""
     model.eval()
     feats, labels = [], []
-    for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
+    for batch in tqdm(loader, desc=desc, leave=False, disable=None if progress else True):
         feats.append(model(batch)["features"].float().cpu())
         labels.append(batch["labels"])
     return torch.cat(feats).numpy().astype(np.float64), torch.cat(labels).numpy()

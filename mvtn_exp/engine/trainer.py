@@ -161,6 +161,13 @@ def augment(batch: dict, cfg: TrainConfig) -> dict:
     return turn_batch(batch, random_rotations(len(batch["points"]), cfg.augment.rotate))
 
 
+def say(run_dir: Path, line: str) -> None:
+    """Print ``line`` and append it, time-stamped, to ``<run_dir>/train.log`` (the run's record)."""
+    print(line, flush=True)
+    with open(Path(run_dir) / "train.log", "a") as f:
+        f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] {line}\n")
+
+
 class _Epoch:
     """Running sums of one training epoch."""
 
@@ -182,7 +189,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     all_params = groups["mvnet"] + groups["selector"]
     acc = _Epoch()
     warm = bool(groups["selector"]) and epoch < cfg.optim.selector_warmup_epochs  # G frozen, C alone
-    bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=not cfg.logger.progress)
+    bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=None if cfg.logger.progress else True)
     it = iter(bar)
     while True:
         with timer.stage("data"):
@@ -249,7 +256,7 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict) -> 
     src_best = Path(cfg.ckpt_path).with_name("best.pt")
     if src_best.is_file() and src_best.resolve() != (run_dir / "best.pt").resolve():
         shutil.copyfile(src_best, run_dir / "best.pt")
-    print(f"resumed from {cfg.ckpt_path} at epoch {start + 1}/{cfg.epochs}", flush=True)
+    say(run_dir, f"resumed from {cfg.ckpt_path} at epoch {start + 1}/{cfg.epochs}")
 
 
 def write_results(run_dir: Path, metrics: dict) -> Path:
@@ -344,11 +351,10 @@ def train(cfg, run_dir) -> dict:
             if improved:
                 checkpoint.save_atomic(run_dir / "best.pt", state)
             checkpoint.save_atomic(run_dir / "last.pt", state)
-            print(f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
+            say(run_dir, f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
                   f"val acc {val['acc']:.3f}{' (best)' if improved else ''} | "
                   f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
-                  + (f"detail seen {detail['val_detail_seen']:.2f} | " if detail else "") + f"{seconds:.1f}s",
-                  flush=True)
+                  + (f"detail seen {detail['val_detail_seen']:.2f} | " if detail else "") + f"{seconds:.1f}s")
 
         if not (run_dir / "best.pt").is_file():  # resumed at the last epoch without a best.pt
             log.warning("no best.pt in %s: testing the last model", run_dir)
@@ -374,6 +380,6 @@ def train(cfg, run_dir) -> dict:
         "history": history, "config": cfg_dict,
     }
     write_results(run_dir, metrics)
-    print(f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val {best_acc:.4f} "
+    say(run_dir, f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val {best_acc:.4f} "
           f"at epoch {best_epoch + 1})")
     return metrics

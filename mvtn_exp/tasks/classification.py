@@ -38,7 +38,7 @@ def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool
     conf = torch.zeros(num_classes, num_classes, dtype=torch.long)
     loss_sum, azim, elev, dist, seen, preds = 0.0, [], [], [], [], []
     first_images = None
-    for batch in tqdm(loader, desc=desc, leave=False, disable=not progress):
+    for batch in tqdm(loader, desc=desc, leave=False, disable=None if progress else True):
         if transform is not None:
             batch = transform(batch)
         labels = batch["labels"].to(model.device)

@@ -175,7 +175,7 @@ def class_averaged_evaluation(model, loader, num_classes: int, azim_c, elev_c, p
     azim_c = torch.as_tensor(azim_c)
     elev_c = torch.as_tensor(elev_c)
     conf = torch.zeros(num_classes, num_classes, dtype=torch.long)
-    for batch in tqdm(loader, desc="class-mean views", leave=False, disable=not progress):
+    for batch in tqdm(loader, desc="class-mean views", leave=False, disable=None if progress else True):
         labels = batch["labels"].long()
         _, _, dist = model.select(batch)
         azim = azim_c[labels].to(device=dist.device, dtype=dist.dtype)
