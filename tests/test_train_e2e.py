@@ -194,6 +194,10 @@ def test_cli_train_then_eval(cache, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     last = r.stdout.strip().splitlines()[-1]
     assert Path(last) == run / "metrics.json" and Path(last).is_file()
+    origin = json.loads((run / "provenance.json").read_text())
+    assert origin["version"] and origin["torch"] == torch.__version__ and origin["device"] == "cpu" and origin["host"]
+    assert origin["command"][0].endswith("train.py") or "train" in origin["command"][0]
+    assert origin["commit"] is None or len(origin["commit"]) == 40
     record = (run / "train.log").read_text()  # the console lines are in the run's log too
     assert "epoch 1/1: train loss" in record and "test accuracy" in record
     assert list((run / "tb").glob("events.out.tfevents.*")), "no TensorBoard event file"
@@ -210,6 +214,7 @@ def test_cli_train_then_eval(cache, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert Path(r.stdout.strip().splitlines()[-1]) == out / "metrics.json"
     ev = json.loads((out / "metrics.json").read_text())
+    assert trained["provenance"] == origin and ev["ckpt_provenance"] == origin and ev["provenance"]["torch"]
     assert ev["confusion_matrix"] == trained["confusion_matrix"]
     assert abs(ev["test_acc"] - trained["test_acc"]) < 1e-12 and ev["split"] == "test"
     assert (out / "confusion.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

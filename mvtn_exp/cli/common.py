@@ -131,6 +131,11 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
     """Compose ``config_name`` with the command-line overrides (each value of a ``-m`` sweep) and
     run ``validate(cfg_object)``; on a config error print one line naming the key, the config
     file and the allowed keys / options / values, and exit with code 2 (no traceback)."""
+    if "--version" in argv:
+        from ..engine.provenance import package_version
+
+        print(f"{prog} (mvtn-exp) {package_version()}")
+        sys.exit(0)
     if any(a in HYDRA_INFO_FLAGS or a.split("=")[0] in HYDRA_INFO_FLAGS for a in argv):
         return
     from hydra import compose, initialize_config_module

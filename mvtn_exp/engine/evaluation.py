@@ -12,6 +12,7 @@ from ..model import build_mvtn
 from ..schema import EvalConfig, TrainConfig
 from ..tasks import classification
 from . import checkpoint, eval_modes
+from .provenance import provenance
 from .trainer import as_config, config_dict, eval_loader, view_offsets, write_results
 
 
@@ -66,7 +67,8 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
                "test_per_class_acc": dict(zip(classes, res["per_class_acc"])), "confusion_matrix": res["confusion"],
                "classes": classes, "test_size": res["n"], "split": ecfg.split, "ckpt": str(ecfg.ckpt),
                "ckpt_epoch": int(state.get("epoch", -1)) + 1, **{f"test_{k}": v for k, v in offsets.items()},
-               "config": config_dict(cfg)}
+               "config": config_dict(cfg), "provenance": provenance(cfg.device),
+               "ckpt_provenance": state.get("provenance")}
     tables = [f"## Classification ({ecfg.split})\n\n| accuracy | mean per-class | n |\n|---|---|---|\n"
               f"| {res['acc']:.4f} | {res['mean_class_acc']:.4f} | {res['n']} |"]
     mode = ecfg.robustness if ecfg.robustness != "none" else ecfg.task

@@ -30,6 +30,7 @@ from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from . import checkpoint, seeding
+from .provenance import provenance
 from .run_logger import RunLogger
 from .step_timer import StepTimer
 
@@ -279,6 +280,8 @@ def train(cfg, run_dir) -> dict:
     run_dir.mkdir(parents=True, exist_ok=True)
     device = torch.device(cfg.device)
     cfg_dict = config_dict(cfg)
+    origin = provenance(cfg.device)
+    (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
     problem = cfg.renderer.camera_gradient_problem() if cfg.selector.learned and cfg.dataset.shape == "mesh" else None
     if problem:
         log.warning("learned selector with %s", problem)
@@ -313,7 +316,7 @@ def train(cfg, run_dir) -> dict:
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                 "epoch": epoch, "step": step, "rng": seeding.rng_state(), "config": cfg_dict,
                 "best_val_acc": best_acc, "best_epoch": best_epoch, "skipped_steps": skipped, "history": history,
-                "classes": classes}
+                "classes": classes, "provenance": origin}
 
     logger = RunLogger(run_dir, cfg.logger)
     timer = StepTimer(device)
@@ -377,7 +380,7 @@ def train(cfg, run_dir) -> dict:
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
         "step_seconds": timer.means(), **{f"test_{k}": v for k, v in view_offsets(model, test["azim"], test["elev"]).items()},
         **{f"test_{k}": v for k, v in detail_report(datasets["test"], test).items()},
-        "history": history, "config": cfg_dict,
+        "history": history, "config": cfg_dict, "provenance": origin,
     }
     write_results(run_dir, metrics)
     say(run_dir, f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val {best_acc:.4f} "

@@ -1,0 +1,50 @@
+"""Where a result came from: package and library versions, the code's git commit, device, host, command."""
+from __future__ import annotations
+
+import platform
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+PACKAGE_DIR = Path(__file__).resolve().parents[1]
+
+
+def package_version() -> str:
+    """The installed ``mvtn-exp`` version (``unknown`` when the package is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("mvtn-exp")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _git(*args: str) -> str | None:
+    try:
+        out = subprocess.run(["git", "-C", str(PACKAGE_DIR), *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() if out.returncode == 0 else None
+
+
+def git_state() -> dict:
+    """``{"commit": sha or None, "dirty": bool or None}`` of the repository holding this code (None outside one)."""
+    commit = _git("rev-parse", "HEAD")
+    if commit is None:
+        return {"commit": None, "dirty": None}
+    status = _git("status", "--porcelain", "--untracked-files=no")
+    return {"commit": commit, "dirty": None if status is None else bool(status)}
+
+
+def provenance(device: str = "cpu") -> dict:
+    """Everything needed to say which code, libraries and machine produced a run."""
+    dev = torch.device(device)
+    name = torch.cuda.get_device_name(dev) if dev.type == "cuda" and torch.cuda.is_available() else platform.processor() or platform.machine()
+    return {"package": "mvtn-exp", "version": package_version(), **git_state(), "torch": str(torch.__version__),
+            "cuda": None if torch.version.cuda is None else str(torch.version.cuda), "python": platform.python_version(), "device": str(dev), "device_name": name,
+            "threads": torch.get_num_threads(), "host": socket.gethostname(), "command": [Path(sys.argv[0]).name, *sys.argv[1:]],
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
