@@ -270,6 +270,46 @@ def test_cli_multirun_summary(cache, tmp_path):
     assert len(settings) == 2 and all("| 2 | 0 |" in ln for ln in settings), settings
 
 
+def test_cli_resume_from_the_checkpoint_alone_goes_on_in_place(cache, tmp_path):
+    """``mvtn-train ckpt_path=RUN/last.pt epochs=2``: the checkpoint's own config (no retyping),
+    the same run dir, the first run's results kept."""
+    run = tmp_path / "run"
+    r = _cli([*_tiny_args(cache), "logger.tensorboard=false", f"hydra.run.dir={run}"], ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    first = json.loads((run / "metrics.json").read_text())
+    r = _cli([f"ckpt_path={run / 'last.pt'}", "epochs=2"], tmp_path)  # another cwd: nothing else retyped
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert Path(r.stdout.strip().splitlines()[-1]) == run / "metrics.json"
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["epochs"] == 2 and len(m["history"]) == 2 and m["config"]["views"] == 2 and m["config"]["image_size"] == 32
+    assert m["history"][0] == first["history"][0]
+    kept = list(run.glob("metrics-before-resume-*.json"))
+    assert len(kept) == 1 and json.loads(kept[0].read_text())["epochs"] == 1
+    assert (run / ".hydra" / "config.yaml").is_file() and list((run / ".hydra").glob("resumed-*/overrides.yaml"))
+    assert "resumed from" in (run / "train.log").read_text()
+    bad = _cli([f"ckpt_path={tmp_path / 'nope.pt'}"], ROOT)
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "no such checkpoint file" in bad.stderr
+
+
+def test_cli_sigterm_keeps_the_last_epoch_and_says_how_to_resume(cache, tmp_path):
+    import signal
+    import time
+
+    run = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "mvtn_exp.cli.train", *_tiny_args(cache), "epochs=200",
+                             "logger.tensorboard=false", f"hydra.run.dir={run}"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 240
+    while not (run / "last.pt").is_file() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("mvtn-train: interrupted by SIGTERM") and f"ckpt_path={run / 'last.pt'}" in line
+    assert torch.load(run / "last.pt", weights_only=True)["epoch"] >= 0 and not (run / "metrics.json").exists()
+
+
 def test_cli_multirun_keeps_jobs_apart_and_fails_loudly(tmp_path):
     """Jobs differing only in an excluded key (a path) get their own folders; failed jobs make the
     sweep exit 1 naming them, after the summary is written."""
