@@ -356,10 +356,13 @@ class RotationEvalConfig:
 
 @dataclass
 class OcclusionEvalConfig:
-    """Occlusion robustness: crop ``ratio`` of the normalised extent from each of +-X, +-Y, +-Z."""
+    """Occlusion robustness: cut each shape at ``ratio`` from each of +-X, +-Y, +-Z. ``frame``:
+    ``unit_sphere`` (the paper's code: remove ``sign * x > 1 - 2 ratio`` of the unit sphere,
+    the same plane for every shape) or ``extent`` (remove ``ratio`` of each shape's own extent)."""
 
     ratios: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.2, 0.3, 0.5, 0.75])
     seed: int = 0
+    frame: str = "unit_sphere"
 
 
 @dataclass
@@ -418,6 +421,7 @@ class EvalConfig:
                 raise ValueError(f"rotation.thetas: {t} is outside [0, 180] degrees")
         for r in self.occlusion.ratios:
             fraction("occlusion.ratios", r)
+        one_of("occlusion.frame", self.occlusion.frame, ("unit_sphere", "extent"))
         at_least("retrieval.dim", self.retrieval.dim, 1)
         at_least("retrieval.k", self.retrieval.k, 1)
         at_least("retrieval.list_length", self.retrieval.list_length, 1)

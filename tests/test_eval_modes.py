@@ -44,6 +44,9 @@ def test_occlusion(ckpt, tmp_path):
     assert set(occ) == {"0", "0.5"} and len(occ["0.5"]["per_direction"]) == 6
     assert all(acc == m["test_acc"] for acc in occ["0"]["per_direction"].values())  # ratio 0: untouched
     assert (tmp_path / "occlusion.png").read_bytes()[:4] == b"\x89PNG"
+    assert m["occlusion_frame"] == "unit_sphere" and set(occ["0.5"]["floored_shapes"]) == set(occ["0.5"]["per_direction"])
+    ext = _eval(ckpt, tmp_path / "ext", robustness="occlusion", occlusion=OcclusionEvalConfig(ratios=[0.5], frame="extent"))
+    assert ext["occlusion_frame"] == "extent" and sum(ext["occlusion"]["0.5"]["floored_shapes"].values()) == 0
 
 
 def test_retrieval(ckpt, tmp_path):

@@ -7,9 +7,24 @@ import torch
 
 from mvtn_exp.data.shapes import Meshes
 from mvtn_exp.render.cameras import Cameras
-from mvtn_exp.tasks import robustness as rb
+from mvtn_exp.tasks import robustness
 
 AXIS = {"x": 0, "y": 1, "z": 2}
+
+
+class _Extent:
+    """``robustness`` with the crop functions in the ``extent`` frame: most crop tests below check
+    that frame's geometry (the plane from each shape's own extent); the ``unit_sphere`` frame, the
+    default, has its own tests at the end."""
+
+    def __getattr__(self, name):
+        fn = getattr(robustness, name)
+        if name in ("crop_plane", "crop_indices", "crop_points", "crop_mesh", "crop_batch"):
+            return lambda *a, **kw: fn(*a, **{"frame": "extent", **kw})
+        return fn
+
+
+rb = _Extent()
 
 
 def signed(xyz, d):
@@ -341,3 +356,38 @@ def test_crop_batch_ratio_zero_and_points_only():
     u = signed(batch["points"], "-z")
     cut = u.max(1).values - 0.5 * (u.max(1).values - u.min(1).values)
     assert bool((signed(out["points"], "-z") <= cut[:, None]).all())
+
+
+# ------------------------------------------------------------------------- the unit-sphere frame
+def test_unit_sphere_frame_is_the_official_rule():
+    """The official code keeps ``sign * x > 2|r| - 1``: a fixed plane in the unit sphere's frame
+    whatever the shape's extent (brute force on random points, all six directions)."""
+    g = torch.Generator().manual_seed(3)
+    pts = torch.rand(4, 2000, 3, generator=g, dtype=torch.float64) * 1.2 - 0.6  # inside [-0.6, 0.6]^3
+    for d, r in itertools.product(robustness.DIRECTIONS, (0.1, 0.3, 0.5, 0.75)):
+        idx, count = robustness.crop_indices(pts, d, r, torch.Generator().manual_seed(0))
+        axis, sign = AXIS[d[1]], (1.0 if d[0] == "+" else -1.0)
+        # the official rule names the side it keeps: keeping -sign * x > 2r - 1 removes the cap on the +sign side
+        official = -sign * pts[..., axis] > 2 * r - 1
+        for b in range(4):
+            n_kept = int(official[b].sum())
+            if n_kept >= math.ceil(0.01 * 2000):
+                assert int(count[b]) == n_kept
+                assert torch.equal(torch.sort(idx[b, :n_kept]).values, torch.nonzero(official[b]).flatten())
+    assert float(robustness.crop_plane(pts, "+x", 0.25)[0]) == 0.5
+
+
+def test_unit_sphere_frame_floors_shapes_wholly_cut_and_says_so():
+    v, f = grid_cube(3, half=0.3)  # the cube lies in [-0.3, 0.3]: at r = 0.75 the plane u = -0.5 is below it
+    pts = v[None].float().repeat(2, 1, 1)
+    pts[1] = pts[1] * 3.0  # this one reaches u = -0.9 and keeps its lower part
+    batch = {"points": pts, "meshes": None, "labels": torch.tensor([0, 1]), "names": ["small", "large"]}
+    out = robustness.crop_batch(batch, "+y", 0.75, torch.Generator().manual_seed(0))
+    assert out["occlusion_floored"].tolist() == [True, False]
+    assert bool((out["points"][1][:, 1] <= -0.5).all())
+    cv, cf = robustness.crop_mesh(v, f, "+y", 0.75)  # the mesh: the floor of faces nearest the kept side
+    assert len(cf) == max(1, math.ceil(0.01 * len(f))) and float(cv[:, 1].min()) == -0.3
+    small = robustness.crop_batch(batch, "+y", 0.1, torch.Generator().manual_seed(0))  # plane 0.8: nothing cut
+    assert not bool(small["occlusion_floored"].any()) and torch.equal(small["points"][0], pts[0])
+    with pytest.raises(ValueError, match="frame"):
+        robustness.crop_batch(batch, "+y", 0.1, frame="box")

@@ -45,26 +45,33 @@ def rotation(model, loader, num_classes: int, ecfg: EvalConfig) -> tuple[dict, s
 
 
 def occlusion(model, loader, num_classes: int, ecfg: EvalConfig, run_dir: Path) -> tuple[dict, str]:
-    """Accuracy with ``ratio`` of the extent cropped from each of the six directions."""
+    """Accuracy with each shape cut at ``ratio`` from each of the six directions, in the frame
+    ``occlusion.frame`` (``unit_sphere``: the paper's; ``extent``: each shape's own extent), and
+    how many shapes the floor rule kept from becoming empty."""
     out, rows = {}, []
     dirs = robustness.DIRECTIONS
     for ratio in ecfg.occlusion.ratios:
-        per_dir = {}
+        per_dir, floored = {}, {}
         for d in dirs:
             gen = torch.Generator().manual_seed(ecfg.occlusion.seed)
+            count = {"floored": 0}
 
-            def crop(batch, gen=gen, d=d, ratio=ratio):
-                return robustness.crop_batch(batch, d, ratio, gen)
+            def crop(batch, gen=gen, d=d, ratio=ratio, count=count):
+                cut = robustness.crop_batch(batch, d, ratio, gen, frame=ecfg.occlusion.frame)
+                count["floored"] += int(cut["occlusion_floored"].sum())
+                return cut
 
             per_dir[d] = classification.evaluate(model, loader, num_classes, desc=f"occlusion {ratio:g} {d}",
                                                  progress=ecfg.progress, transform=crop)["acc"]
+            floored[d] = count["floored"]
         mean = float(np.mean(list(per_dir.values())))
-        out[f"{ratio:g}"] = {"per_direction": per_dir, "mean_acc": mean}
-        rows.append(f"| {ratio:g} | " + " | ".join(f"{per_dir[d]:.4f}" for d in dirs) + f" | {mean:.4f} |")
-    table = ("| ratio | " + " | ".join(dirs) + " | mean |\n|---|" + "---|" * (len(dirs) + 1) + "\n"
-             + "\n".join(rows))
+        out[f"{ratio:g}"] = {"per_direction": per_dir, "mean_acc": mean, "floored_shapes": floored}
+        rows.append(f"| {ratio:g} | " + " | ".join(f"{per_dir[d]:.4f}" for d in dirs) + f" | {mean:.4f} | "
+                    f"{sum(floored.values())} |")
+    table = (f"frame: {ecfg.occlusion.frame}\n\n| ratio | " + " | ".join(dirs) + " | mean | shapes floored (all directions) |\n|---|"
+             + "---|" * (len(dirs) + 2) + "\n" + "\n".join(rows))
     occlusion_png(out, dirs, run_dir / "occlusion.png")
-    return {"occlusion": out}, table
+    return {"occlusion": out, "occlusion_frame": ecfg.occlusion.frame}, table
 
 
 @torch.no_grad()
