@@ -73,3 +73,21 @@ def test_weights_only_everywhere():
     hits = [str(p.relative_to(ROOT)) for p in (ROOT / "mvtn_exp").rglob("*.py")
             if "weights_only=False" in p.read_text() or "pickle.load" in p.read_text()]
     assert hits == []
+
+
+def test_checkpoints_of_the_older_format_still_load(tmp_path):
+    """Before weights_only loading the RNG state held numpy's key array: such files still load
+    (plain number arrays are allowed), and their RNG state restores."""
+    import numpy as np
+
+    old = {"model": {"w": torch.ones(2)}, "config": {"views": 1},
+           "rng": {**seeding.rng_state(), "numpy": np.random.get_state()}}
+    torch.save(old, tmp_path / "old.pt")
+    state = checkpoint.load(tmp_path / "old.pt")
+    assert isinstance(state["rng"]["numpy"][1], np.ndarray)
+    seeding.set_rng_state(state["rng"])
+    # an object array would smuggle other globals: still refused
+    torch.save({"model": {}, "config": {}, "x": np.array([_Payload(tmp_path / "ran")], dtype=object)}, tmp_path / "obj.pt")
+    with pytest.raises(checkpoint.CheckpointMismatch, match="refused"):
+        checkpoint.load(tmp_path / "obj.pt")
+    assert not (tmp_path / "ran").exists()

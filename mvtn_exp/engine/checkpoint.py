@@ -6,11 +6,17 @@ import pickle
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import torch
 
 # config keys (dotted) whose change makes a checkpoint's weights meaningless for the new config
 MODEL_KEYS = ("views", "image_size", "selector", "point_encoder", "backbone.name", "mvnet", "dataset.name",
               "dataset.shape", "dataset.variant", "task.name")
+
+
+# numpy arrays of plain numbers, which older checkpoints hold (numpy's RNG state): rebuilding one runs
+# no code of the file's choosing (an object array would need further globals, still refused)
+NUMPY_ARRAYS = [(getattr(np, "_core", None) or np.core).multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 
 
 class CheckpointMismatch(ValueError):
@@ -44,7 +50,8 @@ def load(path, map_location="cpu") -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r}: no such file")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
+        with torch.serialization.safe_globals(NUMPY_ARRAYS):  # checkpoints before 2026-12-01: numpy RNG keys
+            payload = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         what = str(exc).splitlines()
         culprit = next((line.strip() for line in what if "GLOBAL" in line or "Unsupported" in line), what[0] if what else "")
