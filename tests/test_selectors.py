@@ -5,7 +5,7 @@ from mvtn_exp.render import layouts
 from mvtn_exp.selectors import (SELECTORS, VARIANTS, MVTNSelector, RandomSelector, build_selector)
 
 FIXED = ["circular", "spherical", "random"]
-LEARNED = ["mvtn_direct", "mvtn_circular", "mvtn_spherical", "mvtn_poi"]
+LEARNED = ["mvtn_direct", "mvtn_direct_offset", "mvtn_circular", "mvtn_spherical", "mvtn_poi"]
 
 
 def clouds(B=3, N=32, seed=0, dtype=torch.float32):
@@ -14,7 +14,7 @@ def clouds(B=3, N=32, seed=0, dtype=torch.float32):
 
 def test_registry_names():
     assert set(SELECTORS) == set(FIXED + LEARNED)
-    allowed = "allowed: circular, mvtn_circular, mvtn_direct, mvtn_poi, mvtn_spherical, random, spherical"
+    allowed = "allowed: circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, random, spherical"
     with pytest.raises(ValueError, match=allowed):
         build_selector("mvtn_free", 4)
 
@@ -122,9 +122,15 @@ def test_random_selector_uniform_on_sphere():
 # --------------------------------------------------------------------------- MVTN
 
 
+OFFSET_VARIANTS = [v for v in VARIANTS if v != "direct"]
+
+
 def u0_of(variant, M, B):
     if variant == "circular":
         a, e, d = layouts.circular(M, B)
+    elif variant == "direct":
+        a, e, d = layouts.circular(M, B)
+        a, e = torch.zeros_like(a), torch.zeros_like(e)
     else:
         a, e, d = layouts.spherical(M, B)
     return a, e, d
@@ -134,12 +140,12 @@ def u0_of(variant, M, B):
 @pytest.mark.parametrize("M", [1, 4, 12])
 def test_mvtn_bounds_defined_once(variant, M):
     sel = MVTNSelector(M, variant, learn_distance=True, distance_bound=0.5)
-    expected = [180.0 if variant == "direct" else 180.0 / M, 90.0, 0.5]
+    expected = [180.0 if variant.startswith("direct") else 180.0 / M, 90.0, 0.5]
     assert torch.allclose(sel.u_bound, torch.tensor(expected))
     assert MVTNSelector(M, variant).u_bound[2] == 0
 
 
-@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("variant", OFFSET_VARIANTS)
 @pytest.mark.parametrize("training", [True, False])
 def test_mvtn_starts_at_u0_exactly(variant, training):
     torch.manual_seed(0)
@@ -149,6 +155,30 @@ def test_mvtn_starts_at_u0_exactly(variant, training):
     assert torch.equal(azim, a0) and torch.equal(elev, e0) and torch.equal(dist, d0)
     ia, ie, idist = sel.initial_views(3)
     assert torch.equal(ia, a0) and torch.equal(ie, e0) and torch.equal(idist, d0)
+
+
+def test_mvtn_direct_is_the_papers():
+    """u = u_bound * tanh(G(S)): G reads the shape's features only (no u0 input), the views are
+    exactly the bounded tanh of the regressor's output, distinct per view from the start, and
+    no initial layout is added."""
+    torch.manual_seed(0)
+    M, b = 6, 40
+    sel = MVTNSelector(M, "direct").eval()
+    assert sel.regressor[0].in_features == b and not sel.uses_u0
+    x = clouds(B=3)
+    azim, elev, dist = sel(x)
+    t = torch.tanh(sel.regressor(sel.encoder(x)))
+    torch.testing.assert_close(azim, 180.0 * t[:, :M])
+    torch.testing.assert_close(elev, 90.0 * t[:, M:])
+    assert (azim.abs() < 180).all() and (elev.abs() < 90).all() and torch.equal(dist, torch.full_like(dist, 2.2))
+    assert len({round(float(a), 4) for a in azim[0].detach()}) == M  # the M views are not stuck together
+    ia, ie, _ = sel.initial_views(2)
+    assert not ia.any() and not ie.any()
+    offset = MVTNSelector(M, "direct_offset")
+    assert offset.regressor[0].in_features == b + 2 * M and offset.uses_u0
+    # the regressor of the paper's G: b -> b -> b -> 5M -> 2M
+    lin = [m for m in sel.regressor if isinstance(m, torch.nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in lin] == [(b, b), (b, b), (b, 5 * M), (5 * M, 2 * M)]
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -170,7 +200,10 @@ def test_mvtn_learns_and_gradients_reach_the_encoder(variant):
     assert last.weight.grad.abs().sum() > 0 and last.bias.grad.abs().sum() > 0
     opt.step()
     a1, e1, d1 = step()
-    assert (a1 < a0).all() and (e1 < e0).all() and (d1 < d0).all()  # moved down the loss
+    if variant == "direct":  # every layer moves at once (no zero last layer): the loss goes down
+        assert a1.mean() + e1.mean() + d1.mean() < a0.mean() + e0.mean() + d0.mean()
+    else:
+        assert (a1 < a0).all() and (e1 < e0).all() and (d1 < d0).all()  # moved down the loss
     enc = [p.grad for p in sel.encoder.parameters()]
     assert all(g is not None and torch.isfinite(g).all() for g in enc)
     assert sum(float(g.abs().sum()) for g in enc) > 0
@@ -196,6 +229,7 @@ def test_mvtn_offsets_never_exceed_the_bounds(variant, M):
         seen = torch.maximum(seen, off.detach())
         loss = 1e4 * (sign * torch.stack([azim, elev, dist])).sum()
         loss.backward()
+        torch.nn.utils.clip_grad_norm_(sel.parameters(), 30.0)  # as the trainer does
         opt.step()
     sel.eval()
     azim, elev, dist = sel(x)
@@ -214,7 +248,8 @@ def test_mvtn_constant_distance_when_not_learned():
 def test_mvtn_eval_output_independent_of_batch(variant):
     torch.manual_seed(0)
     sel = MVTNSelector(4, variant, learn_distance=True).train()
-    opt = torch.optim.SGD(sel.parameters(), lr=0.01)
+    # direct starts with a non-zero last layer: a small step keeps its tanh away from saturation
+    opt = torch.optim.SGD(sel.parameters(), lr=1e-4 if variant == "direct" else 0.01)
     for i in range(3):  # non-zero last layer and non-default BN statistics
         opt.zero_grad()
         a, e, d = sel(clouds(B=4, seed=i))

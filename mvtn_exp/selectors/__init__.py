@@ -14,8 +14,13 @@ from mvtn_exp.selectors.poi import PointOfInterestSelector
 
 
 def mvtn_direct(views: int, **kw) -> MVTNSelector:
-    """MVTN regressing the views almost freely (azimuth offset +-180, elevation +-90)."""
+    """The paper's MVTN-direct: u = u_bound * tanh(G(S)), azimuth +-180, elevation +-90, no u0."""
     return MVTNSelector(views, "direct", **kw)
+
+
+def mvtn_direct_offset(views: int, **kw) -> MVTNSelector:
+    """Views regressed as freely as ``mvtn_direct`` but as offsets from the spherical layout, u0 an input of G."""
+    return MVTNSelector(views, "direct_offset", **kw)
 
 
 def mvtn_circular(views: int, **kw) -> MVTNSelector:
@@ -33,6 +38,7 @@ SELECTORS: dict[str, Callable[..., ViewSelector]] = {
     "spherical": SphericalSelector,
     "random": RandomSelector,
     "mvtn_direct": mvtn_direct,
+    "mvtn_direct_offset": mvtn_direct_offset,
     "mvtn_circular": mvtn_circular,
     "mvtn_spherical": mvtn_spherical,
     "mvtn_poi": PointOfInterestSelector,
@@ -49,5 +55,6 @@ def build_selector(name: str, views: int, **kw) -> ViewSelector:
 
 __all__ = [
     "SELECTORS", "VARIANTS", "CircularSelector", "MVTNSelector", "RandomSelector", "SphericalSelector",
-    "PointOfInterestSelector", "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct", "mvtn_spherical",
+    "PointOfInterestSelector", "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct", "mvtn_direct_offset",
+    "mvtn_spherical",
 ]

@@ -1,26 +1,30 @@
 """Learned view selection: the MVTN regressor (Hamdi et al., ICCV 2021, Sec. 3.2).
 
-    u = u0 + u_bound * tanh(G(S, u0))
+    u = u0 + u_bound * tanh(G(S, u0))       (circular, spherical, direct_offset)
+    u = u_bound * tanh(G(S))                (direct: the paper's MVTN-direct)
 
 ``G`` is a point encoder (PointNet, b = 40 features) followed by an MLP over
-``concat(features [B, b], u0 [B, 2M])``: ``b + 2M -> b -> b -> 5M -> 2M`` (BatchNorm + ReLU
-between hidden layers, last layer linear). ``u0`` enters normalised (azimuth / 180,
-elevation / 90). The MLP output is split into M azimuth offsets and M elevation offsets (plus M
-distance offsets when ``learn_distance``).
+``concat(features [B, b], u0 [B, 2M])`` (over the features alone for ``direct``):
+``b (+ 2M) -> b -> b -> 5M -> 2M`` (BatchNorm + ReLU between hidden layers, last layer linear).
+``u0`` enters normalised (azimuth / 180, elevation / 90). The MLP output is split into M azimuth
+offsets and M elevation offsets (plus M distance offsets when ``learn_distance``).
 
 What each variant learns (both angles are learned per view and per shape in every variant):
 
-==========  ======================================  ==========================  ================
-variant     u0 (initial views)                      azimuth offset bound        elevation bound
-==========  ======================================  ==========================  ================
-circular    ``layouts.circular`` (elevation 30)     +-180 / M                   +-90
-spherical   ``layouts.spherical`` (Fibonacci)       +-180 / M                   +-90
-direct      ``layouts.spherical`` (Fibonacci)       +-180 (any azimuth)         +-90
-==========  ======================================  ==========================  ================
+=============  ======================================  ==========================  ================
+variant        u0 (initial views)                      azimuth offset bound        elevation bound
+=============  ======================================  ==========================  ================
+circular       ``layouts.circular`` (elevation 30)     +-180 / M                   +-90
+spherical      ``layouts.spherical`` (Fibonacci)       +-180 / M                   +-90
+direct         none (0, 0): G sees the shape only      +-180 (any azimuth)         +-90
+direct_offset  ``layouts.spherical`` (Fibonacci)       +-180 (any azimuth)         +-90
+=============  ======================================  ==========================  ================
 
-"direct" regresses the views almost freely; it also starts from the spherical layout (not from
-zero) so that at initialisation its M views are distinct, and so that the regressor input u0 is
-informative. Angles are neither wrapped nor clamped (that would cut gradients): an elevation
+"direct" is the paper's MVTN-direct: no u0, no u0 input. Its last layer keeps PyTorch's default
+initialisation (as the official code), because with zero weights all M views would start at
+(0, 0), render the same image and receive the same gradient: they would never separate.
+"direct_offset" (this project's earlier "direct") regresses the views as freely but from the
+spherical layout, with u0 as input, so its M views are distinct from the start. Angles are neither wrapped nor clamped (that would cut gradients): an elevation
 beyond +-90 degrees is a valid camera (``mvtn_exp.render.cameras`` is smooth there), and it is
 the camera over the pole at azimuth + 180.
 
@@ -48,19 +52,22 @@ from mvtn_exp.models.point_encoders import build_point_encoder
 from mvtn_exp.render import layouts
 from mvtn_exp.selectors.fixed import ViewSelector, Views
 
-VARIANTS = ("direct", "circular", "spherical")
+VARIANTS = ("direct", "direct_offset", "circular", "spherical")
 
 
-def regressor(in_features: int, features: int, views: int, outputs: int, init_std: float = 0.0) -> nn.Sequential:
+def regressor(in_features: int, features: int, views: int, outputs: int, init_std: Optional[float] = 0.0) -> nn.Sequential:
     """The MVTN MLP ``[B, in_features] -> [B, outputs]``: ``-> b -> b -> 5M -> outputs``.
 
-    The last layer's bias is zero and its weights are ``N(0, init_std^2)`` (0: exactly u0 at start)."""
+    The last layer's bias is zero and its weights are ``N(0, init_std^2)`` (0: exactly u0 at
+    start); ``init_std=None`` keeps PyTorch's default initialisation of that layer."""
     widths = (in_features, features, features, 5 * views)
     layers: list[nn.Module] = []
     for cin, cout in zip(widths[:-1], widths[1:]):
         layers += [nn.Linear(cin, cout), nn.BatchNorm1d(cout), nn.ReLU(inplace=True)]
     last = nn.Linear(widths[-1], outputs)
-    if init_std > 0:
+    if init_std is None:
+        pass
+    elif init_std > 0:
         nn.init.normal_(last.weight, std=float(init_std))
     else:
         nn.init.zeros_(last.weight)
@@ -75,7 +82,9 @@ class MVTNSelector(ViewSelector):
     point_encoder: a registered name (``mvtn_exp.models.point_encoders``) or an ``nn.Module``
     mapping ``[B, N, 3] -> [B, features]``. features: b (40 in the paper).
     distance: camera distance (the centre of the learned range when ``learn_distance``).
-    elevation: elevation of the circular u0 (circular variant only).
+    elevation: elevation of the circular u0 (circular variant only). init_std: std of the last
+    layer's weights at initialisation (None: 0 for the offset variants, so they start exactly at
+    u0, and PyTorch's default for ``direct``).
     BatchNorm in the encoder and the regressor: training mode needs B >= 2; in eval mode the
     views of a shape do not depend on the other shapes in the batch.
     """
@@ -86,7 +95,7 @@ class MVTNSelector(ViewSelector):
                  features: int = 40, distance: float = 2.2, learn_distance: bool = False,
                  distance_bound: float = 1.0, elevation: float = 30.0,
                  point_encoder_kwargs: Optional[dict] = None, azim_bound: Optional[float] = None,
-                 elev_bound: Optional[float] = None, init_std: float = 0.0) -> None:
+                 elev_bound: Optional[float] = None, init_std: Optional[float] = None) -> None:
         super().__init__(views)
         if variant not in VARIANTS:
             raise ValueError(f"MVTNSelector: unknown variant {variant!r}; allowed: {', '.join(VARIANTS)}")
@@ -98,16 +107,21 @@ class MVTNSelector(ViewSelector):
         self.variant, self.features = variant, b
         self.distance, self.learn_distance = float(distance), bool(learn_distance)
 
+        self.uses_u0 = variant != "direct"
         if variant == "circular":
             azim0, elev0, _ = layouts.circular(M, 1, elevation=elevation, distance=distance)
-        else:  # "spherical" and "direct" both start from the spherical layout
+        elif variant == "direct":  # u = u_bound * tanh(G(S)): no initial views
+            azim0, elev0 = torch.zeros(1, M), torch.zeros(1, M)
+        else:  # "spherical" and "direct_offset" start from the spherical layout
             azim0, elev0, _ = layouts.spherical(M, 1, distance=distance)
         self.register_buffer("azim0", azim0[0], persistent=False)  # [M] degrees
         self.register_buffer("elev0", elev0[0], persistent=False)  # [M] degrees
         if azim_bound is None:
-            azim_bound = 180.0 if variant == "direct" else 180.0 / M
+            azim_bound = 180.0 if variant.startswith("direct") else 180.0 / M
         elev_bound = 90.0 if elev_bound is None else elev_bound
-        if not (azim_bound >= 0 and elev_bound >= 0 and init_std >= 0):
+        if init_std is None and variant != "direct":
+            init_std = 0.0
+        if not (azim_bound >= 0 and elev_bound >= 0 and (init_std is None or init_std >= 0)):
             raise ValueError(f"MVTNSelector: need azim_bound, elev_bound, init_std >= 0 "
                              f"(got {azim_bound}, {elev_bound}, {init_std})")
         dist_bound = float(distance_bound) if self.learn_distance else 0.0
@@ -118,7 +132,7 @@ class MVTNSelector(ViewSelector):
             self.encoder = point_encoder
         else:
             self.encoder = build_point_encoder(point_encoder, out_features=b, **(point_encoder_kwargs or {}))
-        self.regressor = regressor(b + 2 * M, b, M, (3 if self.learn_distance else 2) * M, init_std)
+        self.regressor = regressor(b + 2 * M * self.uses_u0, b, M, (3 if self.learn_distance else 2) * M, init_std)
 
     def initial_views(self, batch: int = 1) -> Views:
         """u0: ``(azim, elev, dist)``, each ``[batch, M]``."""
@@ -131,8 +145,10 @@ class MVTNSelector(ViewSelector):
         B, M = points.shape[0], self.views
         dtype = self.azim0.dtype
         feats = self.encoder(points.to(dtype))  # [B, b]
-        u0 = torch.cat([self.azim0 / 180.0, self.elev0 / 90.0]).expand(B, -1)  # [B, 2M]
-        t = torch.tanh(self.regressor(torch.cat([feats, u0], dim=1)))  # [B, 2M or 3M]
+        if self.uses_u0:
+            u0 = torch.cat([self.azim0 / 180.0, self.elev0 / 90.0]).expand(B, -1)  # [B, 2M]
+            feats = torch.cat([feats, u0], dim=1)
+        t = torch.tanh(self.regressor(feats))  # [B, 2M or 3M]
         azim = self.azim0 + self.u_bound[0] * t[:, :M]
         elev = self.elev0 + self.u_bound[1] * t[:, M:2 * M]
         if self.learn_distance:
