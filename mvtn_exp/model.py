@@ -71,15 +71,17 @@ def build_selector_from(cfg: TrainConfig) -> nn.Module:
     if s.name == "circular":
         return build_selector("circular", cfg.views, elevation=s.elevation, distance=s.distance)
     if s.name == "spherical":
-        return build_selector("spherical", cfg.views, distance=s.distance)
+        return build_selector("spherical", cfg.views, distance=s.distance, sphere=s.sphere)
     if s.name == "mvtn_poi":
-        return build_selector("mvtn_poi", cfg.views, distance=s.distance, gain=s.poi_gain)
+        return build_selector("mvtn_poi", cfg.views, distance=s.distance, gain=s.poi_gain, sphere=s.sphere)
     pe = cfg.point_encoder
     kw = dict(point_encoder=pe.name, features=pe.features, distance=s.distance, learn_distance=s.learn_distance,
               distance_bound=s.distance_bound, azim_bound=s.azim_bound, elev_bound=s.elev_bound,
               init_std=s.init_std, point_encoder_kwargs={"use_tnet": pe.use_tnet})
     if s.name == "mvtn_circular":
         kw["elevation"] = s.elevation
+    else:
+        kw["sphere"] = s.sphere
     return build_selector(s.name, cfg.views, **kw)
 
 

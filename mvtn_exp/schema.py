@@ -129,6 +129,10 @@ class SelectorConfig:
     mvtn_spherical (u = u0 + u_bound * tanh(G(S, u0))) | mvtn_poi (experimental).
 
     ``distance``: camera distance; ``elevation``: elevation of the circular layout (degrees).
+    ``sphere``: how the spherical layouts (spherical, and u0 of mvtn_spherical,
+    mvtn_direct_offset, mvtn_poi) spread M views: ``equal_area`` (the paper's rings, e.g. M = 12:
+    3 / 6 / 3 views at -60 / 0 / +60) or ``fibonacci`` (a Fibonacci lattice, this project's
+    layout before 2026-12-01).
     ``azim_bound`` / ``elev_bound``: learned offsets' bounds in degrees (null: 180/M azimuth for
     the offset variants and 180 for direct; 90 elevation). ``learn_distance`` adds a distance
     offset bounded by ``distance_bound``. ``init_std``: std of G's last layer at initialisation
@@ -141,6 +145,7 @@ class SelectorConfig:
     name: str = "mvtn_spherical"
     distance: float = 2.2
     elevation: float = 30.0
+    sphere: str = "equal_area"
     azim_bound: Optional[float] = None
     elev_bound: Optional[float] = None
     learn_distance: bool = False
@@ -156,6 +161,7 @@ class SelectorConfig:
     def validate(self) -> "SelectorConfig":
         one_of("selector", self.name, SELECTOR_NAMES)
         at_least("selector.distance", self.distance, 0.0, strict=True)
+        one_of("selector.sphere", self.sphere, ("equal_area", "fibonacci"))
         for key in ("azim_bound", "elev_bound"):
             if getattr(self, key) is not None:
                 at_least(f"selector.{key}", getattr(self, key), 0.0)

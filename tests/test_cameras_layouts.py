@@ -66,9 +66,10 @@ def test_circular_layout():
     assert (e == 30.0).all() and (d == 2.5).all()
 
 
+@pytest.mark.parametrize("sphere", ["equal_area", "fibonacci"])
 @pytest.mark.parametrize("M", list(range(1, 41)) + [64, 100, 1000])
-def test_spherical_layout_has_exactly_m_distinct_views(M):
-    a, e, _ = layouts.spherical(M, batch=2)
+def test_spherical_layout_has_exactly_m_distinct_views(M, sphere):
+    a, e, _ = layouts.spherical(M, batch=2, sphere=sphere)
     assert a.shape == (2, M)
     assert (e.abs() < 90).all()
     if M > 1:
@@ -79,8 +80,33 @@ def test_spherical_layout_has_exactly_m_distinct_views(M):
         assert d.min() > 0.5 * math.sqrt(4 * math.pi / M)
 
 
+def test_equal_area_rings_are_the_papers():
+    """The paper's construction at M = 12: rings at -60 / 0 / +60 with 3 / 6 / 3 views, azimuths
+    from 0 in equal steps; where its rounding misses M the total is corrected, deterministically."""
+    rings = layouts.equal_area_rings(12)
+    assert [(round(e, 9), n) for e, n in rings] == [(-60.0, 3), (0.0, 6), (60.0, 3)]
+    a, e, d = layouts.equal_area(12, batch=2)
+    assert a[0].tolist() == [0.0, 120.0, 240.0, 0.0, 60.0, 120.0, 180.0, 240.0, 300.0, 0.0, 120.0, 240.0]
+    assert torch.equal(a, layouts.spherical(12, batch=2)[0]) and (d == 2.2).all()
+
+    def uncorrected(M):  # the construction as published: its own count
+        dd = math.sqrt(4 * math.pi / M)
+        rings = max(1, round(math.pi / dd))
+        d_phi = (4 * math.pi / M) / (math.pi / rings)
+        return sum(round(2 * math.pi * math.sin(math.pi * (m + 0.5) / rings) / d_phi) for m in range(rings))
+
+    missed = [M for M in range(1, 101) if uncorrected(M) != M]
+    assert len(missed) > 10  # the published rounding misses M often ...
+    for M in missed:  # ... and here every M gets exactly M views, the same each call
+        got = layouts.equal_area_rings(M)
+        assert sum(n for _, n in got) == M and got == layouts.equal_area_rings(M)
+    assert layouts.equal_area_rings(1) == [(0.0, 1)]
+    with pytest.raises(ValueError, match="sphere"):
+        layouts.spherical(4, sphere="cube")
+
+
 def test_spherical_layout_covers_the_sphere():
-    a, e, _ = layouts.spherical(200)
+    a, e, _ = layouts.spherical(200, sphere="fibonacci")
     y = torch.sin(torch.deg2rad(e[0]))
     # equal-area: as many views above as below the equator, mean height ~0
     assert abs(float(y.mean())) < 1e-6
@@ -93,3 +119,13 @@ def test_layouts_reject_bad_m(bad):
         layouts.spherical(bad)
     with pytest.raises(ValueError, match="views"):
         layouts.circular(bad)
+
+
+@pytest.mark.parametrize("M", [12, 50, 200])
+def test_equal_area_views_are_equal_area(M):
+    """Each ring's share of the views matches its zone's share of the sphere's area within one view."""
+    rings = layouts.equal_area_rings(M)
+    edges = [-90.0] + [(a[0] + b[0]) / 2 for a, b in zip(rings, rings[1:])] + [90.0]
+    for (e, n), lo, hi in zip(rings, edges, edges[1:]):
+        share = (math.sin(math.radians(hi)) - math.sin(math.radians(lo))) / 2
+        assert abs(n - share * M) <= 1.0 + 1e-9, (e, n, share * M)

@@ -66,7 +66,7 @@ class EdgeError:
 
 def measure(meshes: Meshes, *, size: int, shading: str, K: int, views: int = 4, **renderer) -> EdgeError:
     """Render ``views`` spherical views at K slots and at the reference; compare on edge pixels."""
-    azim, elev, dist = layouts.spherical(views, batch=len(meshes), distance=2.2)
+    azim, elev, dist = layouts.spherical(views, batch=len(meshes), distance=2.2, sphere="fibonacci")
     kw = dict(image_size=size, mode="soft", shading=shading, **renderer)
     with torch.no_grad():
         out = MultiViewRenderer(faces_per_pixel=K, **kw).eval()(meshes, azim, elev, dist)

@@ -175,7 +175,7 @@ class Views:
     """Spherical views ``[B, M]``; ``grad`` copies of azim/elev are leaves that require grad."""
 
     def __init__(self, M: int, B: int, device):
-        self.azim, self.elev, self.dist = layouts.spherical(M, batch=B, distance=2.2, device=device)
+        self.azim, self.elev, self.dist = layouts.spherical(M, batch=B, distance=2.2, device=device, sphere="fibonacci")
         self.azim_g = self.azim.clone().requires_grad_(True)
         self.elev_g = self.elev.clone().requires_grad_(True)
 

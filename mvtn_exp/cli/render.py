@@ -26,7 +26,7 @@ from ..viz.images import view_grid, write_png
 from .common import check_overrides
 
 log = logging.getLogger("mvtn-render")
-LAYOUTS = ("circular", "spherical", "explicit")
+LAYOUTS = ("circular", "spherical", "fibonacci", "explicit")
 
 
 @dataclass
@@ -102,7 +102,8 @@ def view_angles(cfg: RenderAppConfig, device):
         return a, e, torch.full_like(a, cfg.distance)
     if cfg.layout == "circular":
         return layouts.circular(cfg.views, elevation=cfg.elevation, distance=cfg.distance, device=device)
-    return layouts.spherical(cfg.views, distance=cfg.distance, device=device)
+    sphere = "fibonacci" if cfg.layout == "fibonacci" else "equal_area"  # spherical: the paper's rings
+    return layouts.spherical(cfg.views, distance=cfg.distance, device=device, sphere=sphere)
 
 
 def render_file(cfg: RenderAppConfig, out_dir: Path) -> list[Path]:

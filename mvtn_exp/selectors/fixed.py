@@ -70,17 +70,20 @@ class CircularSelector(ViewSelector):
 
 
 class SphericalSelector(ViewSelector):
-    """Exactly M near-uniform views on the sphere (Fibonacci lattice); same for every shape."""
+    """Exactly M views spread over the sphere (``layouts.spherical``: the paper's equal-area rings
+    or a Fibonacci lattice, ``sphere``); the same for every shape."""
 
-    def __init__(self, views: int, distance: float = 2.2) -> None:
+    def __init__(self, views: int, distance: float = 2.2, sphere: str = "equal_area") -> None:
         super().__init__(views)
-        self.distance = float(distance)
+        if sphere not in layouts.SPHERES:
+            raise ValueError(f"SphericalSelector: sphere={sphere!r}; expected one of {', '.join(layouts.SPHERES)}")
+        self.distance, self.sphere = float(distance), sphere
 
     def forward(self, points: Tensor) -> Views:
         """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]``."""
         self._check_points(points)
         return layouts.spherical(self.views, points.shape[0], self.distance,
-                                 device=points.device, dtype=self._dtype(points))
+                                 device=points.device, dtype=self._dtype(points), sphere=self.sphere)
 
 
 def random_directions(shape: tuple[int, ...], generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:

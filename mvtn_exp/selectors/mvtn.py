@@ -15,9 +15,9 @@ What each variant learns (both angles are learned per view and per shape in ever
 variant        u0 (initial views)                      azimuth offset bound        elevation bound
 =============  ======================================  ==========================  ================
 circular       ``layouts.circular`` (elevation 30)     +-180 / M                   +-90
-spherical      ``layouts.spherical`` (Fibonacci)       +-180 / M                   +-90
+spherical      ``layouts.spherical`` (``sphere``)      +-180 / M                   +-90
 direct         none (0, 0): G sees the shape only      +-180 (any azimuth)         +-90
-direct_offset  ``layouts.spherical`` (Fibonacci)       +-180 (any azimuth)         +-90
+direct_offset  ``layouts.spherical`` (``sphere``)      +-180 (any azimuth)         +-90
 =============  ======================================  ==========================  ================
 
 "direct" is the paper's MVTN-direct: no u0, no u0 input. Its last layer keeps PyTorch's default
@@ -84,7 +84,8 @@ class MVTNSelector(ViewSelector):
     distance: camera distance (the centre of the learned range when ``learn_distance``).
     elevation: elevation of the circular u0 (circular variant only). init_std: std of the last
     layer's weights at initialisation (None: 0 for the offset variants, so they start exactly at
-    u0, and PyTorch's default for ``direct``).
+    u0, and PyTorch's default for ``direct``). sphere: the spherical u0's construction
+    (``layouts.SPHERES``: equal_area, the paper's, or fibonacci).
     BatchNorm in the encoder and the regressor: training mode needs B >= 2; in eval mode the
     views of a shape do not depend on the other shapes in the batch.
     """
@@ -95,7 +96,8 @@ class MVTNSelector(ViewSelector):
                  features: int = 40, distance: float = 2.2, learn_distance: bool = False,
                  distance_bound: float = 1.0, elevation: float = 30.0,
                  point_encoder_kwargs: Optional[dict] = None, azim_bound: Optional[float] = None,
-                 elev_bound: Optional[float] = None, init_std: Optional[float] = None) -> None:
+                 elev_bound: Optional[float] = None, init_std: Optional[float] = None,
+                 sphere: str = "equal_area") -> None:
         super().__init__(views)
         if variant not in VARIANTS:
             raise ValueError(f"MVTNSelector: unknown variant {variant!r}; allowed: {', '.join(VARIANTS)}")
@@ -113,7 +115,7 @@ class MVTNSelector(ViewSelector):
         elif variant == "direct":  # u = u_bound * tanh(G(S)): no initial views
             azim0, elev0 = torch.zeros(1, M), torch.zeros(1, M)
         else:  # "spherical" and "direct_offset" start from the spherical layout
-            azim0, elev0, _ = layouts.spherical(M, 1, distance=distance)
+            azim0, elev0, _ = layouts.spherical(M, 1, distance=distance, sphere=sphere)
         self.register_buffer("azim0", azim0[0], persistent=False)  # [M] degrees
         self.register_buffer("elev0", elev0[0], persistent=False)  # [M] degrees
         if azim_bound is None:

@@ -83,13 +83,13 @@ class PointOfInterestSelector(ViewSelector):
     learned = True
 
     def __init__(self, views: int, hidden: int = 64, ks: Sequence[int] = (16, 48), gain: float = 8.0,
-                 distance: float = 2.2, **_ignored) -> None:
+                 distance: float = 2.2, sphere: str = "equal_area", **_ignored) -> None:
         super().__init__(views)
         if not gain > 0:
             raise ValueError(f"PointOfInterestSelector: gain must be > 0, got {gain!r}")
         M = self.views
         self.ks, self.gain, self.distance = tuple(int(k) for k in ks), float(gain), float(distance)
-        azim0, elev0, _ = layouts.spherical(M, 1, distance=distance)
+        azim0, elev0, _ = layouts.spherical(M, 1, distance=distance, sphere=sphere)
         self.register_buffer("azim0", azim0[0], persistent=False)
         self.register_buffer("elev0", elev0[0], persistent=False)
         a, e = torch.deg2rad(azim0[0]), torch.deg2rad(elev0[0])
