@@ -375,11 +375,15 @@ class OcclusionEvalConfig:
 
 @dataclass
 class RetrievalEvalConfig:
-    """Retrieval: features before the classifier, LFDA to ``dim`` (fitted on the train split), every
-    test shape queries the whole train split; ``list_length`` for SHREC-style metrics."""
+    """Retrieval: features before the classifier, LFDA to ``dim`` (fitted on the database), every
+    test shape queries the whole official train split (val included where it was carved out of
+    train); ``k``: LFDA's local-scaling neighbour, ``scaling``: class (Sugiyama's, default) | all
+    (the k-th neighbour among all samples, as before 2026-12-01); ``list_length`` for SHREC-style
+    metrics."""
 
     dim: int = 128
     k: int = 7
+    scaling: str = "class"
     list_length: int = 1000
 
 
@@ -432,6 +436,7 @@ class EvalConfig:
         one_of("occlusion.frame", self.occlusion.frame, ("unit_sphere", "extent"))
         at_least("retrieval.dim", self.retrieval.dim, 1)
         at_least("retrieval.k", self.retrieval.k, 1)
+        one_of("retrieval.scaling", self.retrieval.scaling, ("class", "all"))
         at_least("retrieval.list_length", self.retrieval.list_length, 1)
         return self
 

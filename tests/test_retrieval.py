@@ -80,10 +80,19 @@ def test_ap_no_relevant_is_zero_and_map_ranks_everything():
 
 # ------------------------------------------------------------------------------------------ LFDA
 
-def _brute_scatter(X, y, k):
+def _brute_scatter(X, y, k, scaling="class"):
+    """Sugiyama (2007) written out pair by pair; sigma_i: the k-th nearest neighbour of x_i within
+    its class ("class", k clamped to n_c - 1; a lone sample's sigma does not matter) or among all."""
     n = len(X)
     D = np.linalg.norm(X[:, None] - X[None], axis=-1)
-    sigma = np.sort(D, axis=1)[:, k]
+    if scaling == "all":
+        sigma = np.sort(D, axis=1)[:, k]
+    else:
+        sigma = np.ones(n)
+        for i in range(n):
+            same = np.sort(D[i, y == y[i]])  # itself first
+            if len(same) > 1:
+                sigma[i] = same[min(k, len(same) - 1)]
     A = np.exp(-D ** 2 / np.outer(sigma, sigma))
     counts = {c: int((y == c).sum()) for c in np.unique(y)}
     S_w, S_b = np.zeros((X.shape[1],) * 2), np.zeros((X.shape[1],) * 2)
@@ -99,13 +108,29 @@ def _brute_scatter(X, y, k):
     return S_w, S_b
 
 
-def test_local_scatter_matches_pairwise_definition():
+@pytest.mark.parametrize("scaling", ["class", "all"])
+def test_local_scatter_matches_pairwise_definition(scaling):
     rng = np.random.default_rng(2)
     X = rng.normal(size=(13, 3)) + 5.0
     y = np.array([0] * 5 + [1] * 4 + [2] * 3 + [3])
-    S_w, S_b = local_scatter(X, y, k=3)
-    ref_w, ref_b = _brute_scatter(X, y, 3)
+    S_w, S_b = local_scatter(X, y, k=3, scaling=scaling)
+    ref_w, ref_b = _brute_scatter(X, y, 3, scaling)
     assert np.allclose(S_w, ref_w, atol=1e-10) and np.allclose(S_b, ref_b, atol=1e-10)
+
+
+def test_class_wise_local_scaling_is_the_default_and_differs():
+    """Sugiyama's LFDA scales by the k-th neighbour within the class; the all-samples variant gives
+    another S_w (interleaved classes: a sample's neighbours are mostly of other classes)."""
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(60, 4))
+    y = np.arange(60) % 3
+    default, _ = local_scatter(X, y, k=7)
+    cls, _ = local_scatter(X, y, k=7, scaling="class")
+    every, _ = local_scatter(X, y, k=7, scaling="all")
+    assert np.array_equal(default, cls)
+    assert np.linalg.norm(every - cls) / np.linalg.norm(cls) > 0.05
+    with pytest.raises(ValueError, match="scaling"):
+        local_scatter(X, y, scaling="global")
 
 
 def _loo_1nn(Z, y):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.data import ConcatDataset
 from tqdm.auto import tqdm
 
 from ..data.datasets import build_dataset
@@ -85,13 +86,31 @@ def features(model, loader, progress: bool, desc: str) -> tuple[np.ndarray, np.n
     return torch.cat(feats).numpy().astype(np.float64), torch.cat(labels).numpy()
 
 
+# datasets whose val split is carved out of the official train split (dataset.val_fraction)
+VAL_FROM_TRAIN = ("modelnet40", "scanobjectnn")
+
+
+def retrieval_database(cfg: TrainConfig, progress: bool = True):
+    """The retrieval database: the whole official train split. Where the val split was carved out
+    of it (``VAL_FROM_TRAIN``: ModelNet40 gives 9,843 shapes, not the 90% left for training), it is
+    train + val again; elsewhere (synthetic, ShapeNet) the train split."""
+    train = build_dataset(cfg.dataset, "train", progress=progress)
+    if cfg.dataset.name not in VAL_FROM_TRAIN:
+        return train
+    val = build_dataset(cfg.dataset, "val", progress=progress)
+    whole = ConcatDataset([train, val])
+    whole.classes = train.classes
+    return whole
+
+
 def retrieval_eval(model, cfg: TrainConfig, ecfg: EvalConfig, dataset, run_dir: Path) -> tuple[dict, str]:
-    """Every ``split`` shape queries the whole train split in the LFDA space fitted on the train split."""
-    database = build_dataset(cfg.dataset, "train", progress=ecfg.progress)
+    """Every ``split`` shape queries the whole official train split (``retrieval_database``) in the
+    LFDA space fitted on it."""
+    database = retrieval_database(cfg, ecfg.progress)
     db_x, db_y = features(model, eval_loader(cfg, database), ecfg.progress, "database (train)")
     q_x, q_y = features(model, eval_loader(cfg, dataset), ecfg.progress, f"queries ({ecfg.split})")
     t0 = time.perf_counter()
-    proj = retrieval.LFDA(dim=ecfg.retrieval.dim, k=ecfg.retrieval.k).fit(db_x, db_y)
+    proj = retrieval.LFDA(dim=ecfg.retrieval.dim, k=ecfg.retrieval.k, scaling=ecfg.retrieval.scaling).fit(db_x, db_y)
     db_z, q_z = proj.transform(db_x), proj.transform(q_x)
     result = {}
     table_rows = []

@@ -42,13 +42,34 @@ def _laplacian_quadratic(Xc: np.ndarray, W: np.ndarray) -> np.ndarray:
     return (Xc * deg[:, None]).T @ Xc - Xc.T @ (W @ Xc)
 
 
-def local_scatter(X, y, k: int = 7) -> tuple[np.ndarray, np.ndarray]:
+SCALINGS = ("class", "all")
+
+
+def local_scaling(X: np.ndarray, y: np.ndarray, k: int = 7, scaling: str = "class") -> np.ndarray:
+    """``sigma [n]``: distance from ``x_i`` to its ``k``-th nearest neighbour among the samples of
+    its own class (``scaling="class"``, Sugiyama 2007: the affinity is computed class by class; ``k``
+    clamped to ``n_c - 1``, 0 for a one-sample class) or among all samples (``"all"``, what this
+    project did before 2026-12-01; ``k`` clamped to ``n - 1``); floored at ``1e-6 * mean(positive
+    sigmas)`` (1.0 if every sigma is 0) so duplicates never divide by 0."""
+    if scaling not in SCALINGS:
+        raise ValueError(f"lfda: scaling must be one of {SCALINGS}, got {scaling!r}")
+    if scaling == "all":
+        sigma = _kth_neighbour_distance(X, k)
+    else:
+        sigma = np.zeros(X.shape[0])
+        for c in np.unique(y):
+            idx = np.flatnonzero(y == c)
+            sigma[idx] = _kth_neighbour_distance(X[idx], k)
+    positive = sigma[sigma > 0]
+    return np.maximum(sigma, 1e-6 * positive.mean() if positive.size else 1.0)
+
+
+def local_scatter(X, y, k: int = 7, scaling: str = "class") -> tuple[np.ndarray, np.ndarray]:
     """Local within-class and between-class scatter matrices ``(S_w, S_b)``, each ``[d, d]``, of
     LFDA (Sugiyama 2007).
 
-    Local scaling ``sigma_i`` = distance from ``x_i`` to its ``k``-th nearest neighbour among ALL
-    samples (``k`` clamped to ``n - 1``), floored at ``1e-6 * mean(positive sigmas)`` (1.0 if every
-    sigma is 0) so duplicates never divide by 0; affinity ``A_ij = exp(-|x_i - x_j|^2 / (sigma_i sigma_j))``.
+    Local scaling ``sigma_i``: ``local_scaling(X, y, k, scaling)`` (class-wise by default, as
+    Sugiyama defines it); affinity ``A_ij = exp(-|x_i - x_j|^2 / (sigma_i sigma_j))``.
     ``W_w_ij = A_ij / n_c`` (same class c, else 0); ``W_b_ij = A_ij (1/n - 1/n_c)`` (same class, else
     ``1/n``); ``S = 1/2 sum_ij W_ij (x_i - x_j)(x_i - x_j)^T``. Computed class block by class block
     (``S_b = S_m - S_w`` with the mixture weights ``A_ij / n`` same class, ``1/n`` otherwise), so
@@ -60,9 +81,7 @@ def local_scatter(X, y, k: int = 7) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"local_scatter: X {X.shape} and y {y.shape} must be [n, d] and [n]")
     n, d = X.shape
     Xc = X - X.mean(0)  # scatter is translation invariant; centring helps the round-off
-    sigma = _kth_neighbour_distance(Xc, k)
-    positive = sigma[sigma > 0]
-    sigma = np.maximum(sigma, 1e-6 * positive.mean() if positive.size else 1.0)
+    sigma = local_scaling(Xc, y, k, scaling)
     S_w = np.zeros((d, d))
     S_m = Xc.T @ Xc  # the all-pairs 1/n part of the mixture weights: (1/n) Laplacian of 1 1^T
     for c in np.unique(y):
@@ -91,11 +110,11 @@ def regularize(S_w: np.ndarray, eps: float = 1e-4, S_b: np.ndarray | None = None
     return S_w + (r + 1e-12) * np.eye(d)
 
 
-def _lfda_eig(X, y, dim: int, k: int, eps: float):
+def _lfda_eig(X, y, dim: int, k: int, eps: float, scaling: str = "class"):
     X = np.asarray(X, dtype=np.float64)
     d = X.shape[1]
     dim = min(max(int(dim), 1), d)
-    S_w, S_b = local_scatter(X, y, k)
+    S_w, S_b = local_scatter(X, y, k, scaling)
     vals, vecs = scipy.linalg.eigh(S_b, regularize(S_w, eps, S_b), subset_by_index=[d - dim, d - 1])
     vals, vecs = vals[::-1], vecs[:, ::-1]  # descending
     flip = np.sign(vecs[np.abs(vecs).argmax(0), np.arange(dim)])  # deterministic sign
@@ -119,7 +138,7 @@ def _embed(vals: np.ndarray, vecs: np.ndarray, metric: str) -> np.ndarray:
     return vecs  # "plain"
 
 
-def lfda(X, y, dim: int, k: int = 7, metric: str = "weighted", eps: float = 1e-4) -> np.ndarray:
+def lfda(X, y, dim: int, k: int = 7, metric: str = "weighted", eps: float = 1e-4, scaling: str = "class") -> np.ndarray:
     """Local Fisher Discriminant Analysis -> transformation ``T [d, dim]`` (embed with ``X @ T``).
 
     Solves ``S_b v = lambda S_w_reg v`` (``scipy.linalg.eigh``, ``S_w_reg = regularize(S_w, eps)``)
@@ -128,21 +147,21 @@ def lfda(X, y, dim: int, k: int = 7, metric: str = "weighted", eps: float = 1e-4
     (``S_w_reg``-orthonormal). ``dim > d`` is clamped to ``d`` (so ``T`` has ``min(dim, d)`` columns).
     """
     _check_metric(metric)  # before the expensive part
-    vals, vecs = _lfda_eig(X, y, dim, k, eps)
+    vals, vecs = _lfda_eig(X, y, dim, k, eps, scaling)
     return _embed(vals, vecs, metric)
 
 
 class LFDA:
     """``fit(X, y)`` / ``transform(X) = (X - mean_train) @ T``; ``eigvals_`` (descending), ``T_``, ``mean_``."""
 
-    def __init__(self, dim: int, k: int = 7, metric: str = "weighted", eps: float = 1e-4):
-        self.dim, self.k, self.metric, self.eps = dim, k, metric, eps
+    def __init__(self, dim: int, k: int = 7, metric: str = "weighted", eps: float = 1e-4, scaling: str = "class"):
+        self.dim, self.k, self.metric, self.eps, self.scaling = dim, k, metric, eps, scaling
 
     def fit(self, X, y) -> LFDA:
         X = np.asarray(X, dtype=np.float64)
         self.mean_ = X.mean(0)
         _check_metric(self.metric)
-        self.eigvals_, vecs = _lfda_eig(X, y, self.dim, self.k, self.eps)
+        self.eigvals_, vecs = _lfda_eig(X, y, self.dim, self.k, self.eps, self.scaling)
         self.T_ = _embed(self.eigvals_, vecs, self.metric)
         return self
 
