@@ -80,4 +80,5 @@ def test_shapenet_retrieval_reports_shrec17_metrics(tmp_path):
                                            retrieval=RetrievalEvalConfig(dim=4, list_length=3)), tmp_path / "eval")
     shrec = m["retrieval"]["shrec17"]
     assert shrec["N"] <= 3 and {"micro", "macro"} <= set(shrec)
+    assert shrec["database"].startswith("the test split itself")  # the challenge's protocol
     assert all(0 <= shrec["micro"][k] <= 1 for k in shrec["micro"])

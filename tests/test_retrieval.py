@@ -19,6 +19,7 @@ from mvtn_exp.tasks.retrieval import (
     pr_curve_png,
     rank,
     regularize,
+    shrec17_gains,
     shrec17_metrics,
 )
 
@@ -205,34 +206,84 @@ _Q, _QL = np.array([[1.4], [-0.5], [-0.5]]), np.array([0, 0, 1])
 
 
 def test_shrec_metrics_hand_computed():
+    """The SHREC'17 evaluator's definitions on a hand-worked case: AP divided by the relevant
+    models of the ground truth, DCG with ranks 1 and 2 both weighing 1."""
     out = shrec17_metrics(_Q, _QL, _DB, _DL, n=3)
     assert out["N"] == 3
     g = 1 / math.log2(3)
-    ideal = 1 + g  # two relevant items in the database
+    # A: rel 0 1 1 -> DCG 0 + 1 + g, ideal 1 + 1; C: 1 0 1 -> 1 + 0 + g; D: 0 1 0 -> 1; R = 2 for every query
     per = {"P@N": [2 / 3, 2 / 3, 1 / 3], "R@N": [1, 1, 0.5], "F1@N": [0.8, 0.8, 0.4],
-           "mAP": [(1 / 2 + 2 / 3) / 2, (1 + 2 / 3) / 2, 1 / 2],
-           "NDCG": [(g + 0.5) / ideal, 1.5 / ideal, g / ideal]}
+           "mAP": [(1 / 2 + 2 / 3) / 2, (1 + 2 / 3) / 2, (1 / 2) / 2],
+           "NDCG": [(1 + g) / 2, (1 + g) / 2, 1 / 2]}
     for key, vals in per.items():
         assert out["per_query"][key] == pytest.approx(vals), key
         assert out["micro"][key] == pytest.approx(np.mean(vals)), key
         assert out["macro"][key] == pytest.approx(((vals[0] + vals[1]) / 2 + vals[2]) / 2), key
     assert out["micro"]["P@N"] == pytest.approx(5 / 9) and out["macro"]["P@N"] == pytest.approx(0.5)
-    assert out["macro"]["mAP"] == pytest.approx(29 / 48)
+    assert out["macro"]["mAP"] == pytest.approx(23 / 48)
+
+
+def test_shrec_map_counts_the_relevant_models_of_the_ground_truth():
+    """A list too short to hold every relevant model scores less: 3 of 10 relevant, all at the top,
+    give AP 3/10 (the per-list average precision would say 1)."""
+    db = np.arange(11.0)[:, None]
+    labels = np.array([0] * 10 + [1])
+    out = shrec17_metrics([[0.0]], [0], db, labels, n=3)
+    assert out["per_query"]["mAP"][0] == pytest.approx(0.3)
+    assert average_precision([True, True, True]) == 1.0
+    assert out["per_query"]["P@N"][0] == 1.0 and out["per_query"]["R@N"][0] == pytest.approx(0.3)
 
 
 def test_shrec_n_capped_and_graded_ndcg():
     out = shrec17_metrics(_Q, _QL, _DB, _DL)  # default n=1000 > 4 database items
     assert out["N"] == 4
     assert out["micro"]["R@N"] == pytest.approx(1.0) and out["micro"]["P@N"] == pytest.approx(0.5)
-    # graded: query A (sub 'a'): order 1, 2, 0, 3 -> gains 0 1 2 0; ideal 2 1
-    graded = shrec17_metrics(_Q[:1], _QL[:1], _DB, _DL, n=3, query_sublabels=["a"], db_sublabels=["a", "x", "b", "y"])
     g = 1 / math.log2(3)
-    assert graded["per_query"]["NDCG"][0] == pytest.approx((g + 2 * 0.5) / (2 + g))
+    # graded, query A (sub 'a'): order 1, 2, 0, 3; item 0 same sub-synset (3), item 2 labelled only
+    # at the synset (2) -> gains 0 2 3: DCG 0 + 2 + 3 g, ideal 3 + 2
+    subs = ["a", "x", None, "y"]
+    graded = shrec17_metrics(_Q[:1], _QL[:1], _DB, _DL, n=3, query_sublabels=["a"], db_sublabels=subs)
+    assert graded["per_query"]["NDCG"][0] == pytest.approx((2 + 3 * g) / 5)
     assert graded["micro"]["P@N"] == pytest.approx(2 / 3)  # P/R use binary relevance
+    # a query labelled only at its synset: item 0 (another sub-synset) 1, item 2 (synset only) 2
+    assert shrec17_gains(_DL == 0, None, subs).tolist() == [1.0, 0.0, 2.0, 0.0]
+    assert shrec17_gains(_DL == 0, "b", subs).tolist() == [1.0, 0.0, 2.0, 0.0]  # a sibling sub-synset: 1
     none_rel = shrec17_metrics([[0.0]], [7], _DB, _DL, n=2)  # no relevant item anywhere
     assert all(v == 0.0 for v in none_rel["micro"].values())
     with pytest.raises(ValueError):
         shrec17_metrics(_Q, _QL, _DB, _DL, query_sublabels=["a"] * 3)
+
+
+def test_shrec_against_a_brute_force_evaluator():
+    """Random features, 4 synsets with sub-synsets: every metric equals a direct re-implementation
+    written from the definitions (the query's own split as database, itself included)."""
+    rng = np.random.default_rng(0)
+    n, N = 40, 7
+    X = rng.normal(size=(n, 5))
+    y = rng.integers(0, 4, n)
+    sub = [None if rng.random() < 0.4 else f"{c}-{rng.integers(0, 2)}" for c in y]
+    out = shrec17_metrics(X, y, X, y, n=N, query_sublabels=sub, db_sublabels=sub)
+    for q in range(n):
+        d = ((X - X[q]) ** 2).sum(1)
+        top = sorted(range(n), key=lambda j: (d[j], j))[:N]
+        assert top[0] == q  # the query retrieves itself first
+        relevant = [j for j in range(n) if y[j] == y[q]]
+        hits = [j in relevant for j in top]
+
+        def grade(j):
+            if y[j] != y[q]:
+                return 0
+            if sub[q] is not None and sub[j] == sub[q]:
+                return 3
+            return 2 if sub[j] is None else 1
+
+        ap = sum(sum(hits[:r + 1]) / (r + 1) for r in range(N) if hits[r]) / len(relevant)
+        dcg = lambda gs: sum(g_ if r == 0 else g_ / math.log2(r + 1) for r, g_ in enumerate(gs))
+        ideal = dcg(sorted((grade(j) for j in range(n)), reverse=True)[:N])
+        p, r_ = sum(hits) / N, sum(hits) / len(relevant)
+        expected = {"P@N": p, "R@N": r_, "F1@N": 2 * p * r_ / (p + r_), "mAP": ap, "NDCG": dcg([grade(j) for j in top]) / ideal}
+        for key, val in expected.items():
+            assert out["per_query"][key][q] == pytest.approx(val), (q, key)
 
 
 # --------------------------------------------------------------------------------- PR curve, PNG

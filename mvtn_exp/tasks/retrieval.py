@@ -225,42 +225,65 @@ def mean_average_precision(query_feats, query_labels, db_feats, db_labels) -> tu
 # ------------------------------------------------------------------------------ SHREC'17 metrics
 
 def _dcg(gains: np.ndarray) -> float:
-    return float(np.sum(gains / np.log2(np.arange(2, gains.size + 2))))
+    """The SHREC'17 evaluator's DCG: ``g_1 + sum_{r >= 2} g_r / log2(r)`` (ranks 1 and 2 weigh 1)."""
+    if gains.size == 0:
+        return 0.0
+    return float(gains[0] + np.sum(gains[1:] / np.log2(np.arange(2, gains.size + 1))))
+
+
+def shrec17_gains(same: np.ndarray, query_sub, db_subs) -> np.ndarray:
+    """Graded relevance of every database item to one query (SHREC'17 NDCG): 0 other synset; in the
+    query's synset 3 when both carry the same sub-synset, 2 when the item is labelled only at the
+    synset (no sub-synset: ``None``), 1 otherwise (another sub-synset, or the query has none)."""
+    gains = np.zeros(same.shape[0])
+    if db_subs is None:
+        gains[same] = 1.0
+        return gains
+    db_none = np.array([d is None for d in db_subs])
+    exact = np.array([d is not None and d == query_sub for d in db_subs]) if query_sub is not None else np.zeros_like(db_none)
+    gains[same] = 1.0
+    gains[same & db_none] = 2.0
+    gains[same & exact] = 3.0
+    return gains
 
 
 def shrec17_metrics(query_feats, query_labels, db_feats, db_labels, n: int = 1000,
                     query_sublabels=None, db_sublabels=None) -> dict:
-    """SHREC'17 (ShapeNetCore55) retrieval metrics over the top ``N = min(n, m)`` of each query's
-    ranking (``rank``), relevant = same label:
+    """SHREC'17 (ShapeNetCore55) retrieval metrics as the challenge's evaluator computes them, over
+    the retrieved list: the top ``N = min(n, m)`` of each query's ranking (``rank``); relevant =
+    same label (synset). In the challenge the database is the query's own split, the query
+    included (``mvtn-eval`` does so); ``R`` = relevant items of the database.
 
-    - ``P@N`` = relevant retrieved / N; ``R@N`` = relevant retrieved / relevant in the database
-      (0 when there are none); ``F1@N`` = per-query ``2PR / (P + R)`` (0 when P + R = 0), then averaged.
-    - ``mAP``: per-query AP over the retrieved list (mean precision at each relevant retrieved rank,
-      ``average_precision`` of the truncated list; 0 if none retrieved).
-    - ``NDCG`` = DCG / ideal DCG with ``DCG = sum_i g_i / log2(i + 1)`` (i = 1..N); gains 1 for same
-      label, 0 otherwise, or, with ``query_sublabels`` and ``db_sublabels`` (sub-synsets), 2 for same
-      label and sub-label, 1 same label only; the ideal list is the database's N best gains (0 if none).
+    - ``P@N`` = relevant retrieved / N; ``R@N`` = relevant retrieved / R (0 when R = 0);
+      ``F1@N`` = per-query ``2PR / (P + R)`` (0 when P + R = 0).
+    - ``mAP``: per query ``sum over relevant retrieved ranks r of P@r``, divided by R (the relevant
+      models of the ground truth, not the relevant retrieved: a list too short to hold them all
+      scores less).
+    - ``NDCG`` = DCG / ideal DCG (``_dcg``: ranks 1 and 2 weigh 1, then ``1 / log2 r``) with the
+      graded relevance of ``shrec17_gains`` when ``query_sublabels`` / ``db_sublabels`` are given
+      (sub-synsets; ``None`` for a model labelled only at its synset), else 1 for the same label;
+      the ideal list is the database's N best gains (0 if none).
 
     Returns ``{"N": N, "micro": {metric: mean over queries}, "macro": {metric: mean over the query
     classes of the per-class mean}, "per_query": {metric: array [q]}}``.
     """
     ql, dl = np.asarray(query_labels), np.asarray(db_labels)
     m = dl.shape[0]
-    graded = query_sublabels is not None and db_sublabels is not None
     if (query_sublabels is None) != (db_sublabels is None):
         raise ValueError("shrec17_metrics: give both query_sublabels and db_sublabels, or neither")
-    qs, ds = (np.asarray(query_sublabels), np.asarray(db_sublabels)) if graded else (None, None)
+    qs = list(query_sublabels) if query_sublabels is not None else None
+    ds = list(db_sublabels) if db_sublabels is not None else None
+    if qs is not None and (len(qs) != len(ql) or len(ds) != m):
+        raise ValueError(f"shrec17_metrics: {len(qs)} / {len(ds)} sub-labels for {len(ql)} queries / {m} items")
     N = min(int(n), m)
     if N < 1:
         raise ValueError(f"shrec17_metrics: need n >= 1 and a non-empty database (n={n}, m={m})")
     per = {k: np.zeros(len(ql)) for k in METRICS}
+    ranks = np.arange(1, N + 1)
     for s, order, _ in _rank_blocks(query_feats, db_feats):
         for i, row in enumerate(order):
             j = s + i
             same = dl == ql[j]
-            gains_all = same.astype(np.float64)
-            if graded:
-                gains_all += same & (ds == qs[j])
             n_rel = int(same.sum())
             top = row[:N]
             rel = same[top]
@@ -269,9 +292,10 @@ def shrec17_metrics(query_feats, query_labels, db_feats, db_labels, n: int = 100
             r = hits / n_rel if n_rel else 0.0
             per["P@N"][j], per["R@N"][j] = p, r
             per["F1@N"][j] = 2 * p * r / (p + r) if p + r > 0 else 0.0
-            per["mAP"][j] = average_precision(rel)
-            ideal = _dcg(np.sort(gains_all)[::-1][:N])
-            per["NDCG"][j] = _dcg(gains_all[top]) / ideal if ideal > 0 else 0.0
+            per["mAP"][j] = float(np.sum((np.cumsum(rel) / ranks)[rel]) / n_rel) if n_rel else 0.0
+            gains = shrec17_gains(same, qs[j] if qs is not None else None, ds)
+            ideal = _dcg(np.sort(gains)[::-1][:N])
+            per["NDCG"][j] = _dcg(gains[top]) / ideal if ideal > 0 else 0.0
     classes = np.unique(ql)
     micro = {k: float(v.mean()) if v.size else 0.0 for k, v in per.items()}
     macro = {k: float(np.mean([v[ql == c].mean() for c in classes])) if classes.size else 0.0
