@@ -80,11 +80,13 @@ def test_checkpoints_of_the_older_format_still_load(tmp_path):
     (plain number arrays are allowed), and their RNG state restores."""
     import numpy as np
 
-    old = {"model": {"w": torch.ones(2)}, "config": {"views": 1},
+    old = {"model": {"w": torch.ones(2)}, "config": {"views": 1}, "epoch": 0, "best_epoch": 0,
            "rng": {**seeding.rng_state(), "numpy": np.random.get_state()}}
     torch.save(old, tmp_path / "old.pt")
     state = checkpoint.load(tmp_path / "old.pt")
     assert isinstance(state["rng"]["numpy"][1], np.ndarray)
+    # they counted epochs from 0: read as today's count (1 epoch done, the best was epoch 1)
+    assert state["epoch"] == 1 and state["best_epoch"] == 1 and state["format"] == checkpoint.FORMAT
     seeding.set_rng_state(state["rng"])
     # an object array would smuggle other globals: still refused
     torch.save({"model": {}, "config": {}, "x": np.array([_Payload(tmp_path / "ran")], dtype=object)}, tmp_path / "obj.pt")

@@ -70,7 +70,8 @@ def test_artifacts_and_metrics(full_run):
     assert abs(float(conf.diag().sum()) / m["test_size"] - m["test_acc"]) < 1e-12
     assert m["epochs"] == 2 and len(m["epoch_seconds"]) == 2 and m["skipped_steps"] == 0
     last = torch.load(run / "last.pt", weights_only=False)
-    assert last["epoch"] == 1 and last["config"]["views"] == 2
+    assert last["epoch"] == 2 and last["config"]["views"] == 2  # epochs completed, as metrics.json counts
+    assert last["best_epoch"] == m["best_epoch"] and last["format"] == 2
     assert {"model", "optimizer", "scheduler", "rng", "best_val_acc"} <= set(last)
     assert last["best_val_acc"] == m["best_val_acc"]
 
@@ -152,7 +153,7 @@ def test_crash_mid_epoch_then_resume_matches(cache, full_run, tmp_path, monkeypa
         trainer.train(tiny(cache), tmp_path / "crashed")
     monkeypatch.setattr(MVTN, "render", real_render)
     last = torch.load(tmp_path / "crashed" / "last.pt", weights_only=False)
-    assert last["epoch"] == 0  # only epoch 1 was completed and saved
+    assert last["epoch"] == 1  # only epoch 1 was completed and saved
     assert not (tmp_path / "crashed" / "metrics.json").exists()
     resumed = train(tiny(cache, ckpt_path=str(tmp_path / "crashed" / "last.pt")), tmp_path / "resumed")
     _assert_same_run(resumed, full)
@@ -307,7 +308,7 @@ def test_cli_sigterm_keeps_the_last_epoch_and_says_how_to_resume(cache, tmp_path
     assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
     line = err.strip().splitlines()[-1]
     assert line.startswith("mvtn-train: interrupted by SIGTERM") and f"ckpt_path={run / 'last.pt'}" in line
-    assert torch.load(run / "last.pt", weights_only=True)["epoch"] >= 0 and not (run / "metrics.json").exists()
+    assert torch.load(run / "last.pt", weights_only=True)["epoch"] >= 1 and not (run / "metrics.json").exists()
 
 
 def test_cli_multirun_keeps_jobs_apart_and_fails_loudly(tmp_path):
@@ -370,7 +371,7 @@ def test_resume_from_last_pt_alone(cache, full_run, tmp_path):
     lone = tmp_path / "moved"
     lone.mkdir()
     state = torch.load(run / "last.pt", weights_only=False)
-    state["epoch"] = 0  # pretend epoch 1 of 2 was the last one written
+    state["epoch"] = 1  # pretend epoch 1 of 2 was the last one written
     save_atomic(lone / "last.pt", state)
     m = train(tiny(cache, ckpt_path=str(lone / "last.pt")), tmp_path / "resumed")
     assert (tmp_path / "resumed" / "best.pt").is_file() and m["best_epoch"] == 2

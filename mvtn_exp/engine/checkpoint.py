@@ -19,6 +19,10 @@ MODEL_KEYS = ("views", "image_size", "selector", "point_encoder", "backbone.name
 NUMPY_ARRAYS = [(getattr(np, "_core", None) or np.core).multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 
 
+# 2: "epoch" counts completed epochs and "best_epoch" is 1-based, as in metrics.json (1: both 0-based)
+FORMAT = 2
+
+
 class CheckpointMismatch(ValueError):
     """A checkpoint was written with a different model-defining config."""
 
@@ -62,6 +66,10 @@ def load(path, map_location="cpu") -> dict:
         raise CheckpointMismatch(f"checkpoint {str(path)!r} cannot be read ({type(exc).__name__}: {first})") from exc
     if not isinstance(payload, dict) or "model" not in payload or "config" not in payload:
         raise CheckpointMismatch(f"checkpoint {str(path)!r} was not written by mvtn-train (no model/config)")
+    if int(payload.get("format", 1)) < 2 and "epoch" in payload:  # older files counted epochs from 0
+        payload["epoch"] = int(payload["epoch"]) + 1
+        payload["best_epoch"] = int(payload.get("best_epoch", -1)) + 1
+        payload["format"] = FORMAT
     return payload
 
 

@@ -66,7 +66,7 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
     metrics = {"test_acc": res["acc"], "test_mean_class_acc": res["mean_class_acc"], "test_loss": res["loss"],
                "test_per_class_acc": dict(zip(classes, res["per_class_acc"])), "confusion_matrix": res["confusion"],
                "classes": classes, "test_size": res["n"], "split": ecfg.split, "ckpt": str(ecfg.ckpt),
-               "ckpt_epoch": int(state.get("epoch", -1)) + 1, **{f"test_{k}": v for k, v in offsets.items()},
+               "ckpt_epoch": int(state.get("epoch", 0)), **{f"test_{k}": v for k, v in offsets.items()},
                "config": config_dict(cfg), "provenance": provenance(cfg.device),
                "ckpt_provenance": state.get("provenance")}
     tables = [f"## Classification ({ecfg.split})\n\n| accuracy | mean per-class | n |\n|---|---|---|\n"

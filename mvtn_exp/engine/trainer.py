@@ -248,7 +248,7 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict) -> 
     model.load_state_dict(state["model"])
     opt.load_state_dict(state["optimizer"])
     sched.load_state_dict(state["scheduler"])
-    start = int(state["epoch"]) + 1
+    start = int(state["epoch"])  # epochs completed = the 0-based index of the next one
     # the schedule is a function of (epoch, epochs): re-derive it (epochs may have grown)
     for g, base in zip(opt.param_groups, sched.base_lrs):
         g["lr"] = base * group_factor(cfg, g["name"], start)
@@ -305,8 +305,8 @@ def train(cfg, run_dir) -> dict:
             raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
                                                 f"{resume['classes']} but the dataset has {classes}")
         _resume(cfg, run_dir, model, opt, sched, resume)
-        start = int(resume["epoch"]) + 1
-        best_acc, best_epoch = float(resume["best_val_acc"]), int(resume["best_epoch"])
+        start = int(resume["epoch"])
+        best_acc, best_epoch = float(resume["best_val_acc"]), int(resume["best_epoch"]) - 1
         if not (run_dir / "best.pt").is_file():  # best.pt did not travel with last.pt: select anew
             log.warning("no best.pt beside %s: model selection starts again from the resumed epoch", cfg.ckpt_path)
             best_acc, best_epoch = -1.0, -1
@@ -314,8 +314,10 @@ def train(cfg, run_dir) -> dict:
 
     def payload(epoch):
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                "epoch": epoch, "step": step, "rng": seeding.rng_state(), "config": cfg_dict,
-                "best_val_acc": best_acc, "best_epoch": best_epoch, "skipped_steps": skipped, "history": history,
+                # epochs count from 1 as in metrics.json: "epoch" = epochs completed, "best_epoch" 1-based (0: none)
+                "format": checkpoint.FORMAT, "epoch": epoch + 1, "step": step, "rng": seeding.rng_state(),
+                "config": cfg_dict, "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "skipped_steps": skipped,
+                "history": history,
                 "classes": classes, "provenance": origin}
 
     logger = RunLogger(run_dir, cfg.logger)
