@@ -398,7 +398,8 @@ class EvalConfig:
     ``task``: classification | retrieval; ``robustness``: none | rotation | occlusion (with
     classification); ``views``: also analyse the predicted views (per-class histograms, cameras
     around a shape, accuracy with per-class-averaged views). ``device`` / ``batch_size``: null keeps the checkpoint's values. ``root``:
-    override the dataset root stored in the checkpoint (data moved)."""
+    override the dataset root stored in the checkpoint (data moved); ``paths.output_dir``: where
+    the run dir goes (``<output_dir>/eval/runs/<time>-<pid>``)."""
 
     ckpt: Optional[str] = None
     split: str = "test"
@@ -412,6 +413,7 @@ class EvalConfig:
     rotation: RotationEvalConfig = field(default_factory=RotationEvalConfig)
     occlusion: OcclusionEvalConfig = field(default_factory=OcclusionEvalConfig)
     retrieval: RetrievalEvalConfig = field(default_factory=RetrievalEvalConfig)
+    paths: PathsConfig = field(default_factory=PathsConfig)  # run dirs go under paths.output_dir/eval
 
     def validate(self) -> "EvalConfig":
         if not self.ckpt:

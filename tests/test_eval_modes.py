@@ -82,3 +82,27 @@ def test_view_analysis(ckpt, tmp_path):
 def test_retrieval_refuses_the_train_split(ckpt, tmp_path):
     with pytest.raises(ValueError, match="split=train"):
         _eval(ckpt, tmp_path, task="retrieval", split="train")
+
+
+def test_eval_writes_under_output_dir_and_refuses_a_foreign_root(ckpt, tmp_path):
+    """Runs go under paths.output_dir; ``root=`` pointing a synthetic checkpoint at a real
+    dataset's folder is refused in one line, and nothing is written into that folder."""
+    import torch
+
+    saved = torch.load(ckpt, weights_only=True)["config"]
+    assert Path(saved["dataset"]["root"]).is_absolute() and Path(saved["paths"]["cache_dir"]).is_absolute()
+    out = tmp_path / "elsewhere"
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.eval", f"ckpt={ckpt}", "progress=false",
+                        f"paths.output_dir={out}"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    metrics = Path(r.stdout.strip().splitlines()[-1])
+    assert metrics.is_file() and metrics.parent.parent == out / "eval" / "runs"
+    real = tmp_path / "ModelNet10"
+    (real / "chair" / "train").mkdir(parents=True)
+    (real / "chair" / "train" / "chair_0001.off").write_text("OFF\n0 0 0\n")
+    before = sorted(p.relative_to(real) for p in real.rglob("*"))
+    bad = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.eval", f"ckpt={ckpt}", f"root={real}",
+                          f"paths.output_dir={out}"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert "not a synthetic cache file" in bad.stderr and str(real) in bad.stderr
+    assert sorted(p.relative_to(real) for p in real.rglob("*")) == before

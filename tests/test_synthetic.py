@@ -131,11 +131,11 @@ def test_other_settings_use_other_cache_files(tmp_path):
 
 
 def test_cache_with_other_settings_under_this_name_is_rebuilt(tmp_path):
-    good = make(tmp_path)
+    good = make(tmp_path / "a")
     other = make(tmp_path / "o", rotate="so3")
     shutil.copy(other.cache_path, good.cache_path)  # a stale file under this setting's name
     with pytest.warns(CacheWarning, match="other settings"):
-        again = make(tmp_path)
+        again = make(tmp_path / "a")
     assert same(good, again)
 
 
@@ -285,3 +285,15 @@ def test_collate_points_only(tmp_path):
     assert "verts" not in ds[0] and ds[0]["points"].shape == (NPTS, 3)
     batch = collate_shapes([ds[i] for i in range(3)])
     assert batch["meshes"] is None and batch["points"].shape == (3, NPTS, 3)
+
+
+def test_a_root_holding_anything_but_caches_is_refused_untouched(tmp_path):
+    """The synthetic root is a cache folder: a real dataset's folder passed by mistake is refused
+    before anything is written there."""
+    real = tmp_path / "ModelNet10"
+    (real / "chair").mkdir(parents=True)
+    with pytest.raises(ValueError, match="'chair', which is not a synthetic cache file"):
+        make(real)
+    assert [p.name for p in real.iterdir()] == ["chair"]
+    ok = make(tmp_path / "cache")  # caches only (and their temp files): fine
+    assert ok.cache_path.parent == tmp_path / "cache"

@@ -349,10 +349,24 @@ def split_count(split: str, rotate: str, num_per_class, seed: int, num_points: i
     return counts[SPLITS.index(split)]
 
 
+def check_cache_root(root: Path, prefix: str) -> None:
+    """A synthetic dataset's root is a cache folder it writes into: refuse one that holds anything
+    else (e.g. a real dataset's folder passed by mistake), before writing a byte there."""
+    if not root.is_dir():
+        return
+    for entry in sorted(root.iterdir()):
+        if not (entry.is_file() and entry.name.startswith("synthetic") and entry.name.endswith((".npz", ".tmp"))):
+            raise ValueError(f"dataset {prefix}: root {str(root)!r} holds {entry.name!r}, which is not a synthetic "
+                             f"cache file; this root is the folder the dataset caches itself in: point it at an "
+                             f"empty or cache-only folder (a real dataset's root belongs to its own dataset=...)")
+
+
 def cache_file(root, prefix: str, settings: dict) -> Path:
-    """``<root>/<prefix>_<split>_<hash>.npz`` (``root`` is created); the hash covers every setting."""
+    """``<root>/<prefix>_<split>_<hash>.npz`` (``root`` is created; it must hold nothing but caches:
+    ``check_cache_root``); the hash covers every setting."""
     key = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
     root = Path(root)
+    check_cache_root(root, prefix)
     root.mkdir(parents=True, exist_ok=True)
     return root / f"{prefix}_{settings['split']}_{key}.npz"
 

@@ -54,8 +54,19 @@ def as_config(cfg) -> TrainConfig:
     return obj.validate()
 
 
+PATH_KEYS = (("dataset", "root"), ("dataset", "cache_dir"), ("dataset", "split_csv"), ("dataset", "synset_dict"),
+             ("backbone", "weights"), ("paths", "data_dir"), ("paths", "output_dir"), ("paths", "cache_dir"))
+
+
 def config_dict(cfg: TrainConfig) -> dict:
-    return asdict(cfg)
+    """``cfg`` as plain data, with its file and folder paths made absolute (``PATH_KEYS``): what a
+    checkpoint and metrics.json record works from any working directory."""
+    out = asdict(cfg)
+    for group, key in PATH_KEYS:
+        value = out.get(group, {}).get(key)
+        if isinstance(value, str) and value:
+            out[group][key] = str(Path(value).expanduser().resolve())
+    return out
 
 
 # ----------------------------------------------------------------------------- pieces
