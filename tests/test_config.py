@@ -112,3 +112,20 @@ def test_schema_defaults_equal_the_default_yaml():
     from mvtn_exp.engine.trainer import as_config
 
     assert _compose([]) == as_config({})
+
+
+def test_help_lists_this_projects_groups_and_keys():
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "--help"], capture_output=True, text=True,
+                       timeout=120, cwd=CONF.parents[1])
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert out.startswith("mvtn-train (mvtn-exp ") and "powered by Hydra" not in out
+    groups = {ln.split()[0]: ln for ln in out.splitlines() if ln.startswith("  ") and not ln.strip().startswith(("views=", "ckpt"))}
+    assert "mvtn_spherical*" in groups["selector"] and "mvtn_direct" in groups["selector"]
+    assert "evaluate" not in groups and "hydra" not in groups  # not choosable from mvtn-train
+    assert "augment.{rotate}" in out and "views=4" in out
+    v = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.eval", "--version"], capture_output=True, text=True, timeout=60)
+    assert v.returncode == 0 and v.stdout.startswith("mvtn-eval (mvtn-exp) ")

@@ -252,6 +252,8 @@ def test_cli_real_dataset_missing(tmp_path):
     assert r.returncode == 2
     assert "dataset modelnet40 not found at" in r.stderr and "expected layout" in r.stderr
     assert "dataset modelnet40 not found at" in (tmp_path / "run" / "train.log").read_text()  # the record says why
+    status = json.loads((tmp_path / "run" / "status.json").read_text())  # and the run dir is marked failed
+    assert status["status"] == "error" and "not found at" in status["error"]
 
 
 def test_cli_multirun_summary(cache, tmp_path):
@@ -438,3 +440,13 @@ def test_learned_views_without_camera_gradient_warn_once(cache, tmp_path, caplog
         assert named == []
     else:
         assert len(named) == 1 and warns in named[0]
+
+
+def test_cli_unwritable_output_dir_is_one_line_before_any_work(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    r = _cli([f"paths.output_dir={blocker / 'out'}"], ROOT)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "cannot write the run's output under" in r.stderr and "paths.output_dir" in r.stderr
+    r = _cli(["-m", f"hydra.sweep.dir={blocker / 'sweep'}", "seed=0,1"], ROOT)
+    assert r.returncode == 2 and "cannot write" in r.stderr

@@ -126,6 +126,85 @@ def unknown_added_key(override: str, schema, conf_dir: Path) -> Optional[tuple[s
     return None
 
 
+DESCRIPTIONS = {
+    "mvtn-train": "train MVTN end to end: view selector G -> renderer R -> multi-view network C -> task head",
+    "mvtn-eval": "evaluate a checkpoint: classification, robustness=rotation|occlusion, task=retrieval",
+    "mvtn-render": "render M views of a mesh or point cloud into a run dir",
+    "mvtn-prepare": "preprocess (cache) a real dataset once, reporting skipped files",
+}
+NOT_GROUPS = ("evaluate", "hydra", "__pycache__")  # folders of the config package that are not choosable groups
+
+
+def check_writable(prog: str, argv: list[str], default: str = "outputs") -> None:
+    """Before Hydra makes a run dir: the output folder (``hydra.run.dir=``/``hydra.sweep.dir=``, else
+    ``paths.output_dir=``, else ``default``) must be creatable and writable; else one line, exit 2."""
+    import os
+    import tempfile
+
+    given = dict(a.split("=", 1) for a in argv if "=" in a)
+    target = Path(given.get("hydra.run.dir") or given.get("hydra.sweep.dir") or given.get("paths.output_dir") or default)
+    probe = target
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent  # the nearest existing folder decides whether target can be made
+    try:
+        if not probe.is_dir():
+            raise NotADirectoryError(f"{probe} is not a folder")
+        fd, tmp = tempfile.mkstemp(dir=probe, prefix=".mvtn-write-test-")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        print(f"{prog}: error: cannot write the run's output under {str(target)!r} ({exc.strerror or exc}); "
+              "set paths.output_dir=DIR to a writable folder", file=sys.stderr)
+        sys.exit(2)
+
+
+def mark_failed(run_dir: Path, status: str, error: str) -> None:
+    """``<run_dir>/status.json`` = ``{"status", "error"}``: a run dir left by a failed command says so
+    (the sweep summary reads the same file)."""
+    import json
+
+    from ..engine.sweep import STATUS_FILE
+
+    try:
+        (Path(run_dir) / STATUS_FILE).write_text(json.dumps({"status": status, "error": error}))
+    except OSError:
+        pass  # an unwritable run dir: the message on stderr is all there is
+
+
+def project_help(prog: str, config_name: str, schema, config_module: str = CONF_MODULE) -> str:
+    """This project's ``--help``: the command, its config groups and options (defaults marked *),
+    and the keys of its schema with their defaults."""
+    from hydra import compose, initialize_config_module
+
+    from ..engine.provenance import package_version
+
+    conf = Path(importlib.import_module(config_module).__file__).parent
+    with initialize_config_module(version_base="1.3", config_module=config_module):
+        chosen = _choices(compose, config_name, [])
+    groups = sorted(d.name for d in conf.iterdir() if d.is_dir() and d.name not in NOT_GROUPS)
+    lines = [f"{prog} (mvtn-exp {package_version()}): {DESCRIPTIONS.get(prog, '')}", "",
+             f"usage: {prog} " + ("[group=option ...] " if groups else "") + "[key=value ...]"
+             + (" [-m key=a,b ...]" if prog == "mvtn-train" else ""), ""]
+    if groups:
+        lines.append("Config groups (group=option; * = default; experiment: +experiment=NAME):")
+        for g in groups:
+            opts = sorted(f.stem for f in (conf / g).glob("*.yaml"))
+            lines.append(f"  {g:<14} " + ", ".join(o + ("*" if chosen.get(g) == o else "") for o in opts))
+        lines.append("")
+    lines.append("Keys (key=value; the whole composed tree: --cfg job):")
+    flat, nested = [], []
+    for f in dataclasses.fields(schema):
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        if dataclasses.is_dataclass(default):
+            nested.append(f"  {f.name}." + "{" + ",".join(x.name for x in dataclasses.fields(default)) + "}")
+        else:
+            flat.append(f"{f.name}={'???' if default is dataclasses.MISSING else default}")
+    lines += ["  " + "  ".join(flat[i:i + 6]) for i in range(0, len(flat), 6)] + nested
+    lines += ["", "Bad input is one line on stderr naming the key and what is allowed, exit code 2.",
+              "--version: the package version; --hydra-help: Hydra's own flags; README.md: the full documentation."]
+    return "\n".join(lines)
+
+
 def check_overrides(prog: str, config_name: str, schema, argv: list[str],
                     validate: Optional[Callable] = None, config_module: str = CONF_MODULE) -> None:
     """Compose ``config_name`` with the command-line overrides (each value of a ``-m`` sweep) and
@@ -135,6 +214,9 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
         from ..engine.provenance import package_version
 
         print(f"{prog} (mvtn-exp) {package_version()}")
+        sys.exit(0)
+    if "--help" in argv or "-h" in argv:
+        print(project_help(prog, config_name, schema, config_module))
         sys.exit(0)
     if any(a in HYDRA_INFO_FLAGS or a.split("=")[0] in HYDRA_INFO_FLAGS for a in argv):
         return

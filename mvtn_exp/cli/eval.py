@@ -6,6 +6,7 @@ and confusion.png under ``outputs/eval/runs/<time>-<pid>``; the last printed lin
 """
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from ..data.shapes import ShapeError
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.evaluation import evaluate_checkpoint
 from ..schema import EvalConfig, register_configs
-from .common import check_overrides
+from .common import check_overrides, check_writable, mark_failed
 
 register_configs()
 
@@ -27,8 +28,11 @@ def _app(cfg) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         evaluate_checkpoint(OmegaConf.to_object(cfg), run_dir)
-    except (CheckpointMismatch, FileNotFoundError, NotImplementedError, ShapeError, ValueError) as exc:
+    except (CheckpointMismatch, OSError, NotImplementedError, ShapeError, ValueError) as exc:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise  # the full traceback, on request
         print(f"mvtn-eval: error: {exc}", file=sys.stderr)
+        mark_failed(run_dir, "error", str(exc))
         sys.exit(2)
     print(run_dir / "metrics.json")
 
@@ -36,6 +40,7 @@ def _app(cfg) -> None:
 def main() -> None:
     check_overrides("mvtn-eval", "eval", EvalConfig, sys.argv[1:], validate=EvalConfig.validate,
                     config_module="mvtn_exp.conf.evaluate")
+    check_writable("mvtn-eval", sys.argv[1:])
     _app()
 
 

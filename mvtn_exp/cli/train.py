@@ -6,7 +6,7 @@ Examples: ``mvtn-train``, ``mvtn-train +experiment=synthetic_circular views=1``,
 """
 from __future__ import annotations
 
-import json
+import os
 import signal
 import sys
 import time
@@ -20,10 +20,9 @@ from omegaconf import OmegaConf
 from ..data.shapes import ShapeError
 from ..engine import checkpoint
 from ..engine.checkpoint import CheckpointMismatch
-from ..engine.sweep import STATUS_FILE
 from ..engine.trainer import TrainingDiverged, as_config, train
 from ..schema import TrainConfig, register_configs
-from .common import check_overrides
+from .common import check_overrides, check_writable, mark_failed
 
 register_configs()
 EXIT_CODES = {TrainingDiverged: 3}
@@ -81,16 +80,17 @@ def _app(cfg) -> None:
         with open(run_dir / "train.log", "a") as f:
             f.write(f"mvtn-train: interrupted by {exc}; {how}\n")
         sys.exit(128 + exc.signum)
-    except (CheckpointMismatch, FileNotFoundError, NotImplementedError, ShapeError, ValueError,
-            TrainingDiverged) as exc:
+    except (CheckpointMismatch, OSError, NotImplementedError, ShapeError, ValueError, TrainingDiverged) as exc:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise  # the full traceback, on request
         kind = "training diverged" if isinstance(exc, TrainingDiverged) else "error"
         print(f"mvtn-train: {kind}: {exc}", file=sys.stderr)
         with open(run_dir / "train.log", "a") as f:  # the run's record keeps the reason too
             f.write(f"mvtn-train: {kind}: {exc}\n")
-        if hc.mode == RunMode.MULTIRUN:  # record it for the sweep summary and go on with the next job
-            (run_dir / STATUS_FILE).write_text(json.dumps({"status": kind, "error": str(exc)}))
+        mark_failed(run_dir, kind, str(exc))  # no run dir is left looking like an unfinished run
+        if hc.mode == RunMode.MULTIRUN:  # recorded for the sweep summary: go on with the next job
             return
-        sys.exit(EXIT_CODES.get(type(exc), 2))
+        sys.exit(EXIT_CODES.get(type(exc), 1 if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError) else 2))
     print(run_dir / "metrics.json")
 
 
@@ -113,6 +113,7 @@ def resume_in_place(argv: list[str]) -> list[str]:
 def main() -> None:
     check_overrides("mvtn-train", "train", TrainConfig, sys.argv[1:], validate=TrainConfig.validate)
     sys.argv[1:] = resume_in_place(sys.argv[1:])
+    check_writable("mvtn-train", sys.argv[1:])
     _app()
 
 
