@@ -114,3 +114,19 @@ def test_loader_bench_table():
     for r in rows[1:]:
         ms_batch, ms_step, share = (c.strip() for c in r.split("|")[2:5])
         assert float(ms_batch) > 0 and float(ms_step) > 0 and share.endswith("%")
+
+
+def test_prob_cutoff_bench_measures_against_the_default():
+    """The cut-off shortcut's table: the default row is the reference (no error, cosine 1); a larger
+    cut-off shrinks the blur radius and moves some edge pixels (it is measured, not free)."""
+    from mvtn_exp.bench import prob_cutoff
+    from mvtn_exp.bench.edge_error import torus_mesh
+    from mvtn_exp.render.config import RendererConfig
+
+    rows = prob_cutoff.measure(torus_mesh(12), [prob_cutoff.DEFAULT, 0.05], size=32, views=2, repeats=1)
+    ref, cut = rows
+    assert ref["cov_off"] == ref["rgb_off"] == 0.0 and abs(ref["grad_cos"] - 1) < 1e-6 and ref["edge_pixels"] > 0
+    assert cut["cov_max"] > 0 and cut["grad_cos"] < 1 - 1e-6
+    small, big = (RendererConfig(mode="soft", prob_cutoff=p).effective_blur() for p in (0.05, 1e-4))
+    assert small < big
+    assert "| 0.05 |" in prob_cutoff.to_markdown(rows, "t")

@@ -39,6 +39,9 @@ class RendererConfig:
     sigma: float = 1e-4
     gamma: float = 1e-4
     blur_radius: float | None = None
+    # with blur_radius null: faces whose SoftRas probability at a pixel is below this are not searched
+    # there (the blur radius is where sigmoid(-d^2/sigma) = prob_cutoff); a speed/accuracy knob
+    prob_cutoff: float = 1e-4
     # which K faces hold a pixel's soft slots: "logit" (largest blend weights; coverage counts
     # every face within the blur radius) or "depth" (PyTorch3D's: the K nearest; coverage from them)
     soft_slots: str = "logit"
@@ -98,6 +101,7 @@ class RendererConfig:
             "lod_faces_per_pixel": self.lod_faces_per_pixel > 0,
             "point_opacity": 0 < self.point_opacity <= 1,
             "coverage_tol": 0 <= self.coverage_tol < 1,
+            "prob_cutoff": 0 < self.prob_cutoff < 0.5,
         }
         for key, ok in checks.items():
             if not ok:
@@ -116,10 +120,11 @@ class RendererConfig:
         return self.mode == "soft"
 
     def effective_blur(self) -> float:
-        """Blur radius (NDC) of soft mode: where sigmoid(-d^2/sigma) falls to 1e-4, capped at the screen diagonal."""
+        """Blur radius (NDC) of soft mode: ``blur_radius``, else where sigmoid(-d^2/sigma) falls to
+        ``prob_cutoff`` (1e-4: 3.0 sqrt(sigma)); capped at the screen diagonal."""
         if not self.soft:
             return 0.0
-        r = self.blur_radius if self.blur_radius is not None else math.sqrt(self.sigma * math.log(1e4 - 1))
+        r = self.blur_radius if self.blur_radius is not None else math.sqrt(self.sigma * math.log(1.0 / self.prob_cutoff - 1.0))
         return min(r, 2 * math.sqrt(2.0))
 
     def camera_gradient_problem(self) -> str | None:
