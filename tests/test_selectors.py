@@ -319,3 +319,17 @@ def test_poi_gradient_reaches_the_scorer():
         opt.step()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in sel.parameters())
     assert float(sel.scorer[1].weight.grad.abs().max()) > 0
+
+
+def test_the_constant_u0_input_is_cancelled_by_the_first_batchnorm():
+    """G's u0 input is the same for every shape, so in training the first BatchNorm subtracts it
+    away: any other constant there gives the same output (issue 9's question, measured here).
+    Only the features of the shape reach the views."""
+    torch.manual_seed(0)
+    sel = MVTNSelector(4, "spherical", init_std=0.01).train()
+    f = sel.encoder(clouds(B=8))
+    u0 = torch.cat([sel.azim0 / 180.0, sel.elev0 / 90.0]).expand(8, -1)
+    with torch.no_grad():
+        a = sel.regressor(torch.cat([f, u0], 1))
+        b = sel.regressor(torch.cat([f, 5.0 * u0 + 1.0], 1))
+    assert float((a - b).abs().max()) < 1e-5 and float(a.abs().max()) > 1e-3
