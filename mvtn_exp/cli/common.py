@@ -107,9 +107,14 @@ def sweep_variants(overrides: list[str]) -> list[list[str]]:
     return variants
 
 
-def unknown_added_key(override: str, schema, conf_dir: Path) -> Optional[tuple[str, str]]:
-    """``(key, message)`` when ``+key=value`` / ``++key=value`` adds a key the schema does not have
-    (Hydra would accept it silently), else None. ``+group=option`` for a config group is fine."""
+def package_conf(config_module: str) -> Path:
+    """The folder of a config package (``mvtn_exp.conf`` -> ``.../mvtn_exp/conf``)."""
+    return Path(importlib.import_module(config_module).__file__).parent
+
+
+def unknown_added_key(override: str, schema, conf_dir: Path) -> Optional[str]:
+    """The one-line message when ``+key=value`` / ``++key=value`` adds a key the schema does not
+    have (Hydra would accept it silently), else None. ``+group=option`` for a config group is fine."""
     if not override.startswith("+"):
         return None
     key = override.lstrip("+").split("=", 1)[0].split("@", 1)[0]
@@ -121,8 +126,7 @@ def unknown_added_key(override: str, schema, conf_dir: Path) -> Optional[tuple[s
     allowed = _allowed_keys(schema, parts[:-1])
     top = [f.name for f in dataclasses.fields(schema)] if len(parts) == 1 else allowed
     if top and parts[-1] not in top:
-        return key, (f"{override!r} adds key '{key}', which is not in the schema "
-                     f"(allowed keys here: {', '.join(sorted(top))})")
+        return f"{override!r} adds key '{key}', which is not in the schema (allowed keys here: {', '.join(sorted(top))})"
     return None
 
 
@@ -178,7 +182,7 @@ def project_help(prog: str, config_name: str, schema, config_module: str = CONF_
 
     from ..engine.provenance import package_version
 
-    conf = Path(importlib.import_module(config_module).__file__).parent
+    conf = package_conf(config_module)
     with initialize_config_module(version_base="1.3", config_module=config_module):
         chosen = _choices(compose, config_name, [])
     groups = sorted(d.name for d in conf.iterdir() if d.is_dir() and d.name not in NOT_GROUPS)
@@ -224,11 +228,10 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
 
     overrides = [a for a in argv if a not in MULTIRUN_FLAGS and not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     conf_dir = config_module.replace(".", "/")
-    package_conf = Path(importlib.import_module(config_module).__file__).parent
     for o in overrides:
-        bad = unknown_added_key(o, schema, package_conf)
+        bad = unknown_added_key(o, schema, package_conf(config_module))
         if bad:
-            print(f"{prog}: config error in {conf_dir}/{config_name}.yaml: {bad[1]}", file=sys.stderr)
+            print(f"{prog}: config error in {conf_dir}/{config_name}.yaml: {bad}", file=sys.stderr)
             sys.exit(2)
     choices: dict = {}
     try:

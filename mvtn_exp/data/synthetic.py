@@ -260,6 +260,14 @@ def build_shape(name: str, rng: np.random.Generator | int, max_faces: int = 2000
         res = max(6, int(res * 0.7))
 
 
+def quaternion_rows(w, x, y, z) -> tuple:
+    """The rotation matrix of the unit quaternion ``(w, x, y, z)`` as 3 rows of 3 entries; works
+    elementwise on numbers, numpy arrays and tensors alike (the caller stacks them)."""
+    return ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+
+
 def random_rotation(mode: str, r: np.random.Generator) -> np.ndarray:
     """``[3, 3]`` rotation: identity (``none``), uniform about +Y (``y``) or uniform over SO(3) (``so3``)."""
     if mode == "none":
@@ -270,11 +278,7 @@ def random_rotation(mode: str, r: np.random.Generator) -> np.ndarray:
         return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
     if mode == "so3":
         w, x, y, z = (q := r.normal(size=4)) / np.linalg.norm(q)
-        return np.array([
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ])
+        return np.array(quaternion_rows(w, x, y, z))
     raise ValueError(f"synthetic: rotate={mode!r}; expected one of {list(ROTATIONS)}")
 
 

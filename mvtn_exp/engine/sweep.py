@@ -77,6 +77,11 @@ def _fmt(v) -> str:
     return f"{v:.4f}" if isinstance(v, float) else str(v)
 
 
+def _override_values(overrides: list[str]) -> dict[str, str]:
+    """``["+a.b=1", "c=x"]`` -> ``{"a.b": "1", "c": "x"}`` (in order; entries without ``=`` skipped)."""
+    return {o.split("=", 1)[0].lstrip("+~"): o.split("=", 1)[1] for o in overrides if "=" in o}
+
+
 def write_summary(sweep_dir) -> tuple[Path, Path]:
     """Write ``summary.csv`` (one row per job, one column per overridden key, then status and
     metrics) and ``summary.md`` (per job and mean +- std per setting) into ``sweep_dir``; returns
@@ -84,19 +89,14 @@ def write_summary(sweep_dir) -> tuple[Path, Path]:
     sweep_dir = Path(sweep_dir)
     rows = collect(sweep_dir)
     csv_path, md_path = sweep_dir / "summary.csv", sweep_dir / "summary.md"
-    keys: list[str] = []  # one column per overridden key, in first-seen order
-    for r in rows:
-        for o in r["overrides"]:
-            k = o.split("=", 1)[0].lstrip("+~")
-            if "=" in o and k not in keys:
-                keys.append(k)
+    values = [_override_values(r["overrides"]) for r in rows]
+    keys = list(dict.fromkeys(k for v in values for k in v))  # one column per overridden key, first-seen order
     fields = ["job", *keys, "status", *COLUMNS, "error"]
     with open(csv_path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
-        for r in rows:
-            values = {o.split("=", 1)[0].lstrip("+~"): o.split("=", 1)[1] for o in r["overrides"] if "=" in o}
-            w.writerow({**{k: r.get(k, "") for k in fields if k not in keys}, **{k: values.get(k, "") for k in keys}})
+        for r, v in zip(rows, values):
+            w.writerow({**{k: r.get(k, "") for k in fields if k not in keys}, **{k: v.get(k, "") for k in keys}})
     aggs = aggregate(rows)
     lines = ["# Sweep summary", "", f"{len(rows)} jobs in `{sweep_dir}`.", "",
              "## Mean +- std over seeds (sample std)", "",
@@ -113,10 +113,11 @@ def write_summary(sweep_dir) -> tuple[Path, Path]:
     return csv_path, md_path
 
 
-def failed_jobs(sweep_dir) -> list[str]:
-    """``"<job>: <status>[: <error>]"`` for every job of the sweep that did not finish with metrics."""
+def failed_jobs(sweep_dir, rows: list[dict] | None = None) -> list[str]:
+    """``"<job>: <status>[: <error>]"`` for every job of the sweep (``rows``: its ``collect``) that
+    did not finish with metrics."""
     return [f"{r['job']}: {r.get('status')}" + (f": {r['error']}" if r.get("error") else "")
-            for r in collect(sweep_dir) if r.get("status") != "ok"]
+            for r in (collect(sweep_dir) if rows is None else rows) if r.get("status") != "ok"]
 
 
 class SweepSummary(Callback):
@@ -130,8 +131,8 @@ class SweepSummary(Callback):
         _, md = write_summary(sweep_dir)
         print(md.read_text())
         print(md)
-        failed = failed_jobs(sweep_dir)
+        rows = collect(sweep_dir)
+        failed = failed_jobs(sweep_dir, rows)
         if failed:
-            print(f"mvtn-train: {len(failed)} of {len(collect(sweep_dir))} sweep jobs failed: " + "; ".join(failed),
-                  file=sys.stderr)
+            print(f"mvtn-train: {len(failed)} of {len(rows)} sweep jobs failed: " + "; ".join(failed), file=sys.stderr)
             sys.exit(1)

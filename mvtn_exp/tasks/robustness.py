@@ -52,6 +52,7 @@ import math
 import torch
 
 from ..data.shapes import Meshes
+from ..data.synthetic import quaternion_rows
 
 DIRECTIONS = ("+x", "-x", "+y", "-y", "+z", "-z")
 FRAMES = ("unit_sphere", "extent")
@@ -131,10 +132,7 @@ def random_rotations(n: int, mode: str, generator: torch.Generator | None = None
     if mode != "so3":
         raise ValueError(f"random_rotations: mode={mode!r}; expected none, y or so3")
     q = torch.randn(n, 4, generator=generator, dtype=torch.float64)
-    w, x, y, z = (q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)).unbind(1)
-    rows = [(1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))]
+    rows = quaternion_rows(*(q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)).unbind(1))
     return torch.stack([torch.stack(r, -1) for r in rows], -2)
 
 
@@ -218,6 +216,12 @@ def crop_indices(points: torch.Tensor, direction: str, ratio: float, generator: 
     ``planes [B]`` overrides the per-shape cut (signed coordinates, see ``crop_plane``), else
     ``crop_plane(points, direction, ratio, frame)``.
     """
+    index, count, _ = _crop_indices(points, direction, ratio, generator, planes, frame)
+    return index, count
+
+
+def _crop_indices(points, direction, ratio, generator, planes, frame):
+    """``crop_indices`` plus ``floored [B]`` bool: the shapes the floor rule kept from becoming empty."""
     _check_ratio(ratio)
     if points.dim() != 3 or points.shape[-1] != 3:
         raise ValueError(f"crop_points: points must be [B, N, 3], got {tuple(points.shape)}")
@@ -243,7 +247,7 @@ def crop_indices(points: torch.Tensor, direction: str, ratio: float, generator: 
     pick = torch.minimum(pick, (count[:, None] - 1).clamp(min=0))
     pos = torch.arange(N, device=points.device).expand(B, N)
     src = torch.where(pos < count[:, None], pos, pick)
-    return order.gather(1, src), count
+    return order.gather(1, src), count, low
 
 
 def crop_points(points: torch.Tensor, direction: str, ratio: float, generator: torch.Generator | None = None,
@@ -383,9 +387,7 @@ def crop_batch(batch: dict, direction: str, ratio: float, generator: torch.Gener
             plist.append(p)
         planes = torch.stack(plist).to(points.device)
         out["meshes"] = Meshes.from_list(new_v, new_f, names=list(meshes.names))
-    index, survivors = crop_indices(points, direction, ratio, generator, planes, frame)
+    index, _, floored = _crop_indices(points, direction, ratio, generator, planes, frame)
     out["points"] = points.gather(1, index[..., None].expand(-1, -1, 3))
-    u = _signed(points, direction)
-    kept = (u <= (crop_plane(points, direction, ratio, frame) if planes is None else planes).to(u)[:, None]).sum(1)
-    out["occlusion_floored"] = (kept < _floor(points.shape[1], POINT_FLOOR)).cpu()
+    out["occlusion_floored"] = floored.cpu()
     return out
