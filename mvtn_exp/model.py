@@ -77,7 +77,7 @@ def build_selector_from(cfg: TrainConfig) -> nn.Module:
     pe = cfg.point_encoder
     kw = dict(point_encoder=pe.name, features=pe.features, distance=s.distance, learn_distance=s.learn_distance,
               distance_bound=s.distance_bound, azim_bound=s.azim_bound, elev_bound=s.elev_bound,
-              init_std=s.init_std, point_encoder_kwargs={"use_tnet": pe.use_tnet})
+              init_std=s.init_std, point_encoder_kwargs={"use_tnet": pe.use_tnet}, regressor=s.regressor)
     if s.name == "mvtn_circular":
         kw["elevation"] = s.elevation
     else:

@@ -21,6 +21,7 @@ from .models.multiview import MULTIVIEW, POOLS
 from .models.point_encoders import POINT_ENCODERS
 from .render.config import RendererConfig
 from .selectors import SELECTORS
+from .selectors.mvtn import REGRESSORS
 
 DATASETS = ("synthetic", "synthetic_views", "modelnet40", "scanobjectnn", "shapenet")
 SHAPES = ("mesh", "points")
@@ -140,6 +141,8 @@ class SelectorConfig:
     (null: all). Default 256, measured on the default experiment (8 epochs, 3 seeds): test accuracy
     0.866 +- 0.052 with 256 points vs 0.852 +- 0.050 with all 1024 (256 better by 0.014 +- 0.006 per
     seed), at 17.5 vs 26.0 s per epoch. The paper setups read all points.
+    ``regressor`` (learned MVTN selectors): ``compact`` (b -> b -> b -> 5M -> 2M, the default) or
+    ``official`` (the official code's MLP: one more 2M -> 2M layer, dropout 0.5; the paper setups).
     """
 
     name: str = "mvtn_spherical"
@@ -153,6 +156,7 @@ class SelectorConfig:
     init_std: Optional[float] = None
     num_points: Optional[int] = 256
     poi_gain: float = 8.0
+    regressor: str = "compact"
 
     @property
     def learned(self) -> bool:
@@ -162,6 +166,7 @@ class SelectorConfig:
         one_of("selector", self.name, SELECTOR_NAMES)
         at_least("selector.distance", self.distance, 0.0, strict=True)
         one_of("selector.sphere", self.sphere, ("equal_area", "fibonacci"))
+        one_of("selector.regressor", self.regressor, REGRESSORS)
         for key in ("azim_bound", "elev_bound"):
             if getattr(self, key) is not None:
                 at_least(f"selector.{key}", getattr(self, key), 0.0)

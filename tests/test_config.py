@@ -53,6 +53,7 @@ def test_every_experiment_composes(name):
         assert cfg.backbone.name == "resnet18" and cfg.selector.learned
         # the paper's text (MVCNN 3e-4, views network 1e-3), not the official code's 1e-3 / 1e-4
         assert cfg.optim.lr == 3e-4 and cfg.optim.lr_selector == 1e-3 and cfg.optim.clip_selector == 30
+        assert cfg.selector.regressor == "official"  # the official code's G
     text = (CONF / "experiment" / f"{name}.yaml").read_text()
     assert text.startswith("# @package _global_")
 
@@ -83,6 +84,7 @@ def test_top_level_keys_reach_the_parts():
     pytest.param(["device=cuda"], "CUDA is not available on this machine",
                  marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
     (["renderer.mode=wire"], "renderer.mode"),
+    (["selector.regressor=mlp"], "selector.regressor"),
     (["-m", "views=1,0"], "views=0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),
 ])

@@ -3,6 +3,7 @@ import torch
 
 from mvtn_exp.render import layouts
 from mvtn_exp.selectors import (SELECTORS, VARIANTS, MVTNSelector, RandomSelector, build_selector)
+from mvtn_exp.selectors.mvtn import REGRESSORS, regressor_parameters
 
 FIXED = ["circular", "spherical", "random"]
 LEARNED = ["mvtn_direct", "mvtn_direct_offset", "mvtn_circular", "mvtn_spherical", "mvtn_poi"]
@@ -147,9 +148,10 @@ def test_mvtn_bounds_defined_once(variant, M):
 
 @pytest.mark.parametrize("variant", OFFSET_VARIANTS)
 @pytest.mark.parametrize("training", [True, False])
-def test_mvtn_starts_at_u0_exactly(variant, training):
+@pytest.mark.parametrize("kind", REGRESSORS)
+def test_mvtn_starts_at_u0_exactly(variant, training, kind):
     torch.manual_seed(0)
-    sel = MVTNSelector(4, variant, learn_distance=True).train(training)
+    sel = MVTNSelector(4, variant, learn_distance=True, regressor=kind).train(training)
     azim, elev, dist = sel(clouds())
     a0, e0, d0 = u0_of(variant, 4, 3)
     assert torch.equal(azim, a0) and torch.equal(elev, e0) and torch.equal(dist, d0)
@@ -179,6 +181,45 @@ def test_mvtn_direct_is_the_papers():
     # the regressor of the paper's G: b -> b -> b -> 5M -> 2M
     lin = [m for m in sel.regressor if isinstance(m, torch.nn.Linear)]
     assert [(m.in_features, m.out_features) for m in lin] == [(b, b), (b, b), (b, 5 * M), (5 * M, 2 * M)]
+
+
+# hand-expanded polynomials at b = 40 (see the selectors/mvtn.py docstring), not the code's formula
+SIZES = {("compact", True): (10, 297, 3440), ("compact", False): (10, 217, 3440),
+         ("official", True): (14, 303, 3440), ("official", False): (14, 223, 3440)}
+
+
+@pytest.mark.parametrize("kind", REGRESSORS)
+@pytest.mark.parametrize("variant", ["spherical", "direct"])
+def test_regressor_sizes(kind, variant):
+    """G's MLP has exactly the stated parameter count at every M; the official one is the official
+    code's layers (Linear + BatchNorm + ReLU + Dropout(0.5) four times, then Linear(2M, 2M))."""
+    u0 = variant != "direct"
+    a, b_, c = SIZES[kind, u0]
+    for M in (1, 2, 4, 12, 20):
+        sel = MVTNSelector(M, variant, regressor=kind)
+        n = sum(p.numel() for p in sel.regressor.parameters())
+        assert n == a * M * M + b_ * M + c == regressor_parameters(M, 40, u0, kind)
+    M, b = 12, 40
+    sel = MVTNSelector(M, variant, regressor=kind)
+    lin = [(m.in_features, m.out_features) for m in sel.regressor if isinstance(m, torch.nn.Linear)]
+    widths = [(b + 2 * M * u0, b), (b, b), (b, 5 * M), (5 * M, 2 * M)] + ([(2 * M, 2 * M)] if kind == "official" else [])
+    assert lin == widths
+    drops = [m.p for m in sel.regressor if isinstance(m, torch.nn.Dropout)]
+    assert drops == ([0.5] * 4 if kind == "official" else [])
+    assert sum(isinstance(m, torch.nn.BatchNorm1d) for m in sel.regressor) == len(widths) - 1
+    with pytest.raises(ValueError, match="unknown regressor 'mlp'"):
+        MVTNSelector(M, variant, regressor="mlp")
+
+
+def test_official_regressor_dropout_only_in_training():
+    """The official MLP's dropout makes training outputs vary from call to call; eval is deterministic."""
+    torch.manual_seed(0)
+    sel = MVTNSelector(4, "direct", regressor="official")
+    x = clouds(B=4)
+    sel.train()
+    assert not torch.equal(sel(x)[0], sel(x)[0])
+    sel.eval()
+    assert torch.equal(sel(x)[0], sel(x)[0])
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

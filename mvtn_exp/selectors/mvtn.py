@@ -5,9 +5,16 @@
 
 ``G`` is a point encoder (PointNet, b = 40 features) followed by an MLP over
 ``concat(features [B, b], u0 [B, 2M])`` (over the features alone for ``direct``):
-``b (+ 2M) -> b -> b -> 5M -> 2M`` (BatchNorm + ReLU between hidden layers, last layer linear).
-``u0`` enters normalised (azimuth / 180, elevation / 90). The MLP output is split into M azimuth
-offsets and M elevation offsets (plus M distance offsets when ``learn_distance``).
+``b (+ 2M) -> b -> b -> 5M -> 2M`` (BatchNorm + ReLU between hidden layers, last layer linear;
+``regressor="compact"``, the default) or the official code's MLP (``regressor="official"``: every one
+of those four layers Linear + BatchNorm + ReLU + Dropout(0.5), then a plain Linear(2M, 2M)).
+Parameters at b = 40 (``regressor_parameters``): compact 10M^2 + 297M + 3440 with the u0 input,
+10M^2 + 217M + 3440 without (direct); official 14M^2 + 303M + 3440 / 14M^2 + 223M + 3440. The
+paper states 14M^2 + 211M + 3320 (7,868 at M = 12): no consistent arrangement of these layers
+gives it (the M^2 term is the official tail's, the constant needs 120 fewer parameters than b ->
+b -> b with biases and BatchNorm), so "official" is the closest faithful G. ``u0`` enters
+normalised (azimuth / 180, elevation / 90). The MLP output is split into M azimuth offsets and M
+elevation offsets (plus M distance offsets when ``learn_distance``).
 
 What each variant learns (both angles are learned per view and per shape in every variant):
 
@@ -53,17 +60,26 @@ from mvtn_exp.render import layouts
 from mvtn_exp.selectors.fixed import ViewSelector, Views
 
 VARIANTS = ("direct", "direct_offset", "circular", "spherical")
+REGRESSORS = ("compact", "official")
+OFFICIAL_DROPOUT = 0.5
 
 
-def regressor(in_features: int, features: int, views: int, outputs: int, init_std: Optional[float] = 0.0) -> nn.Sequential:
-    """The MVTN MLP ``[B, in_features] -> [B, outputs]``: ``-> b -> b -> 5M -> outputs``.
+def regressor(in_features: int, features: int, views: int, outputs: int, init_std: Optional[float] = 0.0,
+              kind: str = "compact") -> nn.Sequential:
+    """The MVTN MLP ``[B, in_features] -> [B, outputs]``: ``-> b -> b -> 5M -> outputs`` (compact),
+    or ``-> b -> b -> 5M -> outputs -> outputs`` with BatchNorm, ReLU and dropout 0.5 after every
+    layer but the last (official; see the module docstring).
 
     The last layer's bias is zero and its weights are ``N(0, init_std^2)`` (0: exactly u0 at
     start); ``init_std=None`` keeps PyTorch's default initialisation of that layer."""
-    widths = (in_features, features, features, 5 * views)
+    if kind not in REGRESSORS:
+        raise ValueError(f"MVTNSelector: unknown regressor {kind!r}; allowed: {', '.join(REGRESSORS)}")
+    official = kind == "official"
+    widths = (in_features, features, features, 5 * views) + ((outputs,) if official else ())
     layers: list[nn.Module] = []
     for cin, cout in zip(widths[:-1], widths[1:]):
         layers += [nn.Linear(cin, cout), nn.BatchNorm1d(cout), nn.ReLU(inplace=True)]
+        layers += [nn.Dropout(OFFICIAL_DROPOUT)] if official else []
     last = nn.Linear(widths[-1], outputs)
     if init_std is None:
         pass
@@ -73,6 +89,21 @@ def regressor(in_features: int, features: int, views: int, outputs: int, init_st
         nn.init.zeros_(last.weight)
     nn.init.zeros_(last.bias)
     return nn.Sequential(*layers, last)
+
+
+def regressor_parameters(views: int, features: int = 40, u0_input: bool = True, kind: str = "compact") -> int:
+    """``regressor``'s parameter count for 2M outputs (M = ``views``, b = ``features``), layer by
+    layer: each hidden layer ``in * out`` weights, ``out`` biases and ``2 out`` BatchNorm
+    parameters, then the last Linear's ``in * 2M + 2M``."""
+    M, b = int(views), int(features)
+    cin = b + 2 * M * bool(u0_input)
+    hidden = [(cin, b), (b, b), (b, 5 * M)] + ([(5 * M, 2 * M)] if kind == "official" else [])
+    n = sum(i * o + o + 2 * o for i, o in hidden)  # Linear weights + bias, BatchNorm weight + bias
+    last_in = 2 * M if kind == "official" else 5 * M
+    return n + last_in * 2 * M + 2 * M
+
+
+_regressor = regressor  # the builder, under a name the attribute ``self.regressor`` does not shadow
 
 
 class MVTNSelector(ViewSelector):
@@ -85,7 +116,8 @@ class MVTNSelector(ViewSelector):
     elevation: elevation of the circular u0 (circular variant only). init_std: std of the last
     layer's weights at initialisation (None: 0 for the offset variants, so they start exactly at
     u0, and PyTorch's default for ``direct``). sphere: the spherical u0's construction
-    (``layouts.SPHERES``: equal_area, the paper's, or fibonacci).
+    (``layouts.SPHERES``: equal_area, the paper's, or fibonacci). regressor: ``REGRESSORS``
+    (compact, or official: the official code's MLP; see the module docstring).
     BatchNorm in the encoder and the regressor: training mode needs B >= 2; in eval mode the
     views of a shape do not depend on the other shapes in the batch.
     """
@@ -97,7 +129,7 @@ class MVTNSelector(ViewSelector):
                  distance_bound: float = 1.0, elevation: float = 30.0,
                  point_encoder_kwargs: Optional[dict] = None, azim_bound: Optional[float] = None,
                  elev_bound: Optional[float] = None, init_std: Optional[float] = None,
-                 sphere: str = "equal_area") -> None:
+                 sphere: str = "equal_area", regressor: str = "compact") -> None:
         super().__init__(views)
         if variant not in VARIANTS:
             raise ValueError(f"MVTNSelector: unknown variant {variant!r}; allowed: {', '.join(VARIANTS)}")
@@ -134,7 +166,9 @@ class MVTNSelector(ViewSelector):
             self.encoder = point_encoder
         else:
             self.encoder = build_point_encoder(point_encoder, out_features=b, **(point_encoder_kwargs or {}))
-        self.regressor = regressor(b + 2 * M * self.uses_u0, b, M, (3 if self.learn_distance else 2) * M, init_std)
+        self.regressor_kind = regressor
+        self.regressor = _regressor(b + 2 * M * self.uses_u0, b, M, (3 if self.learn_distance else 2) * M, init_std,
+                                    regressor)
 
     def initial_views(self, batch: int = 1) -> Views:
         """u0: ``(azim, elev, dist)``, each ``[batch, M]``."""
@@ -161,4 +195,4 @@ class MVTNSelector(ViewSelector):
 
     def extra_repr(self) -> str:
         return (f"views={self.views}, variant={self.variant!r}, features={self.features}, "
-                f"distance={self.distance}, learn_distance={self.learn_distance}")
+                f"distance={self.distance}, learn_distance={self.learn_distance}, regressor={self.regressor_kind!r}")
