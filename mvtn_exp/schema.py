@@ -31,6 +31,7 @@ BACKBONE_NAMES = tuple(BACKBONES)
 MVNET_NAMES = tuple(MULTIVIEW)
 TASKS = ("classification",)
 WARMUP_VIEWS = ("u0", "random")
+SELECTOR_GRADIENTS = ("autograd", "smoothed")  # how G gets its gradient (engine/view_gradient.py)
 OPTIMIZERS = ("adamw",)
 SCHEDULES = ("cosine", "step")
 
@@ -241,7 +242,11 @@ class OptimConfig:
     (x ``step_gamma`` every ``step_size`` epochs). ``selector_warmup_epochs``: for the first
     epochs G is frozen and C trains on ``warmup_views`` (``u0``: G's initial views; ``random``:
     new uniform random views per shape and step), then G and C train together.
-    ``selector_epochs``: G's learning rate is 0 from this epoch on (null: G trains to the end)."""
+    ``selector_epochs``: G's learning rate is 0 from this epoch on (null: G trains to the end).
+    ``selector_grad``: how G's gradient is got: ``autograd`` (the paper's: through the
+    differentiable renderer) or ``smoothed`` (the gradient of the task loss smoothed over the views
+    by a Gaussian of ``smoothed_sigma`` degrees, estimated from ``smoothed_pairs`` antithetic pairs
+    of perturbed renders per step; the renderer is not differentiated: ``engine/view_gradient.py``)."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -254,6 +259,9 @@ class OptimConfig:
     selector_warmup_epochs: int = 0
     warmup_views: str = "u0"
     selector_epochs: Optional[int] = None
+    selector_grad: str = "autograd"
+    smoothed_pairs: int = 2
+    smoothed_sigma: float = 10.0
 
     def validate(self) -> "OptimConfig":
         one_of("optim", self.name, OPTIMIZERS)
@@ -267,6 +275,9 @@ class OptimConfig:
         one_of("optim.warmup_views", self.warmup_views, WARMUP_VIEWS)
         if self.selector_epochs is not None:
             at_least("optim.selector_epochs", self.selector_epochs, 0)
+        one_of("optim.selector_grad", self.selector_grad, SELECTOR_GRADIENTS)
+        at_least("optim.smoothed_pairs", self.smoothed_pairs, 1)
+        at_least("optim.smoothed_sigma", self.smoothed_sigma, 0.0, strict=True)
         return self
 
 
@@ -346,6 +357,9 @@ class TrainConfig:
         if self.selector.learned and self.batch_size < 2:
             raise ValueError(f"batch_size={self.batch_size}: a learned selector (BatchNorm in G) trains on batches "
                              "of at least 2 shapes")
+        if self.optim.selector_grad == "smoothed" and self.selector.learn_distance:
+            raise ValueError("optim.selector_grad=smoothed estimates G's azimuth and elevation gradients only; "
+                             "selector.learn_distance=true needs optim.selector_grad=autograd")
         check_device("device", self.device)
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
                      self.optim, self.augment, self.logger):

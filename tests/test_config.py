@@ -85,6 +85,10 @@ def test_top_level_keys_reach_the_parts():
                  marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
     (["renderer.mode=wire"], "renderer.mode"),
     (["selector.regressor=mlp"], "selector.regressor"),
+    (["optim.selector_grad=finite"], "optim.selector_grad"),
+    (["optim.smoothed_pairs=0"], "optim.smoothed_pairs"),
+    (["optim.smoothed_sigma=0"], "optim.smoothed_sigma"),
+    (["optim.selector_grad=smoothed", "selector.learn_distance=true"], "needs optim.selector_grad=autograd"),
     (["-m", "views=1,0"], "views=0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),
 ])

@@ -29,7 +29,7 @@ from ..selectors.fixed import random_directions
 from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
-from . import checkpoint, seeding
+from . import checkpoint, seeding, view_gradient
 from .provenance import provenance
 from .run_logger import RunLogger
 from .step_timer import StepTimer
@@ -201,6 +201,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     all_params = groups["mvnet"] + groups["selector"]
     acc = _Epoch()
     warm = bool(groups["selector"]) and epoch < cfg.optim.selector_warmup_epochs  # G frozen, C alone
+    smoothed = bool(groups["selector"]) and not warm and cfg.optim.selector_grad == "smoothed"
+    per_shape_loss = classification.loss_fn(cfg.task, reduction="none")
     bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=None if cfg.logger.progress else True)
     it = iter(bar)
     while True:
@@ -213,17 +215,24 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
         labels = batch["labels"].to(model.device)
         with timer.stage("selector"):
             views = warmup_views(model, batch, cfg) if warm else model.select(batch)
-        with timer.stage("render"):
-            images = model.render(batch, *views)
+        with timer.stage("render"), torch.set_grad_enabled(not smoothed):
+            images = model.render(batch, *views)  # smoothed: R is not differentiated
         with timer.stage("backbone"):
             logits, _ = model.mvnet(images)
             loss = loss_fn(logits, labels)
         if not bool(torch.isfinite(loss.detach())):
             raise TrainingDiverged(f"epoch {epoch + 1}, step {step + 1}: non-finite loss {float(loss.detach())} "
                                    f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
+        objective = loss
+        if smoothed:  # G's gradient from the loss at perturbed views (view_gradient.py), charged to G
+            with timer.stage("selector"):
+                g = view_gradient.smoothed_view_gradient(
+                    view_gradient.model_render_loss(model, batch, labels, per_shape_loss), views,
+                    cfg.optim.smoothed_pairs, cfg.optim.smoothed_sigma, view_gradient.noise_generator(cfg.seed, step))
+                objective = loss + view_gradient.surrogate(views, *g)
         with timer.stage("optimizer"):
             opt.zero_grad(set_to_none=True)
-        timer.backward(loss, views, images)
+        timer.backward(objective, views, images)
         with timer.stage("optimizer"):
             if not _grads_finite(all_params):
                 acc.skipped += 1
@@ -293,7 +302,8 @@ def train(cfg, run_dir) -> dict:
     cfg_dict = config_dict(cfg)
     origin = provenance(cfg.device)
     (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
-    problem = cfg.renderer.camera_gradient_problem() if cfg.selector.learned and cfg.dataset.shape == "mesh" else None
+    problem = (cfg.renderer.camera_gradient_problem()
+               if cfg.selector.learned and cfg.dataset.shape == "mesh" and cfg.optim.selector_grad == "autograd" else None)
     if problem:
         log.warning("learned selector with %s", problem)
 

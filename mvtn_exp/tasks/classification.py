@@ -8,9 +8,10 @@ from tqdm.auto import tqdm
 from ..schema import TaskConfig
 
 
-def loss_fn(cfg: TaskConfig):
-    """``(logits [B, K], labels [B]) -> scalar`` cross-entropy (with ``label_smoothing``)."""
-    return nn.CrossEntropyLoss(label_smoothing=cfg.label_smoothing)
+def loss_fn(cfg: TaskConfig, reduction: str = "mean"):
+    """``(logits [B, K], labels [B]) -> scalar`` cross-entropy (with ``label_smoothing``);
+    ``reduction="none"``: the ``[B]`` per-shape losses."""
+    return nn.CrossEntropyLoss(label_smoothing=cfg.label_smoothing, reduction=reduction)
 
 
 def summarize(confusion: Tensor) -> dict:

@@ -1,0 +1,88 @@
+"""G's gradient from the task loss itself: a Gaussian-smoothed, antithetic estimate over the views.
+
+``optim.selector_grad=autograd`` (the paper's) trains G through the differentiable renderer:
+dL/du = dL/dimages * dimages/du. ``optim.selector_grad=smoothed`` replaces that by the gradient of
+the loss smoothed over the views, estimated from loss *values* at perturbed views:
+
+    L_sigma(u) = E_eps L(u + sigma eps),  eps ~ N(0, I) over every view's (azimuth, elevation)
+    g(u) = 1 / (2 sigma K) sum_k [L(u + sigma eps_k) - L(u - sigma eps_k)] eps_k   (per degree)
+
+with K antithetic pairs (``optim.smoothed_pairs``) and sigma in degrees (``optim.smoothed_sigma``),
+per shape. G is then trained on ``sum(u * g) / B``, whose gradient with respect to G's parameters
+is ``g`` chained through G, exactly as autograd would chain dL/du. The renderer is not
+differentiated at all, so any renderer works (hard included), and no image gradient is kept.
+
+Why (measured on ``synthetic_views`` with a C that reads the cup's detail at 0.95 from the cup's
+axis; 96 test shapes, cameras 20 / 40 / 60 degrees off the axis): the loss rises steeply away
+from the axis (0.15 on it, 1.7 at 20, 3.3 at 40 degrees), yet the renderer's camera gradient
+has cosine -0.03 / 0.04 / -0.24 with the direction towards the axis (and still about 0 averaged
+over 12 jittered views), while this estimate with K = 6, sigma = 12 has cosine 0.73 / 0.72 / 0.51
+(towards the axis for 94 / 92 / 80% of the shapes). See the README.
+
+The perturbed renders run under ``torch.no_grad()`` with the whole model in eval mode (fixed light
+and colour, BatchNorm running statistics, no dropout), so the two sides of a pair differ only in
+the views and no running statistics or random streams of the training step move. The noise comes
+from its own generator, seeded by (run seed, global step): resume stays exact.
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+from typing import Callable, Iterator
+
+import torch
+from torch import Tensor, nn
+
+@contextmanager
+def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
+    """``module`` and all its children in eval mode inside the block; every flag restored after."""
+    flags = [(m, m.training) for m in module.modules()]
+    module.eval()
+    try:
+        yield module
+    finally:
+        for m, flag in flags:
+            m.training = flag
+
+
+def noise_generator(seed: int, step: int) -> torch.Generator:
+    """The perturbations' own CPU generator for global step ``step`` of a run seeded ``seed``."""
+    return torch.Generator().manual_seed((int(seed) * 1_000_003 + int(step)) % (2 ** 63))
+
+
+def smoothed_view_gradient(render_loss: Callable[[Tensor, Tensor, Tensor], Tensor], views: tuple,
+                           pairs: int, sigma: float, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """The antithetic estimate of dL_sigma/du (module docstring) for every shape and view.
+
+    render_loss: ``(azim, elev, dist) [B, M] -> per-shape loss [B]`` (called 2 * pairs times, under
+    no_grad). views: ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world units; detached).
+    Returns ``(g_azim, g_elev)``, each ``[B, M]``: loss per degree of each view's azimuth / elevation.
+    """
+    if pairs < 1 or not sigma > 0:
+        raise ValueError(f"smoothed_view_gradient: need pairs >= 1 and sigma > 0, got {pairs}, {sigma}")
+    azim, elev, dist = (v.detach() for v in views)
+    g_azim, g_elev = torch.zeros_like(azim), torch.zeros_like(elev)
+    with torch.no_grad():
+        for _ in range(int(pairs)):
+            eps = torch.randn((2, *azim.shape), generator=generator, dtype=torch.float64).to(azim)
+            plus = render_loss(azim + sigma * eps[0], elev + sigma * eps[1], dist)
+            minus = render_loss(azim - sigma * eps[0], elev - sigma * eps[1], dist)
+            w = ((plus - minus) / (2.0 * sigma * pairs)).to(azim)[:, None]  # [B, 1]
+            g_azim += w * eps[0]
+            g_elev += w * eps[1]
+    return g_azim, g_elev
+
+
+def model_render_loss(model, batch: dict, labels: Tensor, per_shape_loss: Callable[[Tensor, Tensor], Tensor]):
+    """``render_loss`` for ``smoothed_view_gradient``: R then C of ``model`` (an ``MVTN``) in eval mode."""
+    def render_loss(azim: Tensor, elev: Tensor, dist: Tensor) -> Tensor:
+        with eval_mode(model):
+            logits, _ = model.mvnet(model.render(batch, azim, elev, dist))
+        return per_shape_loss(logits, labels)
+    return render_loss
+
+
+def surrogate(views: tuple, g_azim: Tensor, g_elev: Tensor) -> Tensor:
+    """Scalar whose gradient with respect to G's views is ``(g_azim, g_elev) / B`` (the batch-mean
+    loss's share of each shape): add it to the task loss, computed on detached views."""
+    B = views[0].shape[0]
+    return ((views[0] * g_azim.detach()).sum() + (views[1] * g_elev.detach()).sum()) / B

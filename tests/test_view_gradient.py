@@ -1,0 +1,100 @@
+"""G's smoothed (zeroth-order) gradient: the estimator against closed forms, and its place in a training step."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.engine.view_gradient import eval_mode, noise_generator, smoothed_view_gradient, surrogate
+
+from test_train_e2e import tiny
+
+
+def quadratic(target_a, target_e, scale):
+    """Per-shape loss sum_m scale_m [(a - a*)^2 + (e - e*)^2] and its exact gradient."""
+    def loss(azim, elev, dist):
+        return (scale * ((azim - target_a) ** 2 + (elev - target_e) ** 2)).sum(1)
+    return loss
+
+
+def test_estimate_is_the_gradient_of_a_quadratic_on_average():
+    """Gaussian smoothing keeps a quadratic's gradient, so with many pairs the estimate must
+    approach 2 scale (u - u*) for every shape and view; with one pair it is noisy but unbiased."""
+    B, M = 3, 2
+    g = torch.Generator().manual_seed(0)
+    azim, elev = torch.randn(B, M, generator=g) * 30, torch.randn(B, M, generator=g) * 20
+    ta, te = torch.randn(B, M, generator=g) * 30, torch.randn(B, M, generator=g) * 20
+    scale = torch.rand(B, M, generator=g) + 0.5
+    loss = quadratic(ta, te, scale)
+    views = (azim, elev, torch.full_like(azim, 2.2))
+    ga, ge = smoothed_view_gradient(loss, views, pairs=20000, sigma=7.0, generator=noise_generator(0, 0))
+    true_a, true_e = 2 * scale * (azim - ta), 2 * scale * (elev - te)
+    err = torch.cat([(ga - true_a).flatten(), (ge - true_e).flatten()]).norm()
+    ref = torch.cat([true_a.flatten(), true_e.flatten()]).norm()
+    assert err < 0.05 * ref, (err, ref)
+    # unbiased per pair: the mean of many one-pair estimates is the same vector
+    one = [smoothed_view_gradient(loss, views, 1, 7.0, noise_generator(1, s))[0] for s in range(3000)]
+    assert (torch.stack(one).mean(0) - true_a).norm() < 0.1 * true_a.norm()
+
+
+def test_estimate_is_seeded_and_sees_only_loss_values():
+    calls = []
+
+    def loss(azim, elev, dist):
+        calls.append(torch.is_grad_enabled())
+        return azim.sum(1) - 2 * elev.sum(1)
+
+    views = (torch.zeros(2, 3, requires_grad=True), torch.zeros(2, 3), torch.full((2, 3), 2.2))
+    a1 = smoothed_view_gradient(loss, views, 3, 5.0, noise_generator(4, 17))
+    a2 = smoothed_view_gradient(loss, views, 3, 5.0, noise_generator(4, 17))
+    b = smoothed_view_gradient(loss, views, 3, 5.0, noise_generator(4, 18))
+    assert all(torch.equal(x, y) for x, y in zip(a1, a2)) and not torch.equal(a1[0], b[0])
+    assert calls == [False] * 18  # 2 renders per pair, three calls, never with autograd on
+    with pytest.raises(ValueError, match="pairs >= 1 and sigma > 0"):
+        smoothed_view_gradient(loss, views, 0, 5.0, noise_generator(0, 0))
+
+
+def test_surrogate_hands_g_over_b_to_the_views():
+    azim, elev = torch.randn(4, 2, requires_grad=True), torch.randn(4, 2, requires_grad=True)
+    ga, ge = torch.randn(4, 2), torch.randn(4, 2)
+    surrogate((azim, elev, None), ga, ge).backward()
+    torch.testing.assert_close(azim.grad, ga / 4)
+    torch.testing.assert_close(elev.grad, ge / 4)
+
+
+def test_eval_mode_restores_every_flag():
+    net = torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.BatchNorm1d(2), torch.nn.Dropout())
+    net.train()
+    net[2].eval()  # a mixed state must come back as it was
+    with eval_mode(net):
+        assert not any(m.training for m in net.modules())
+    assert [m.training for m in net.modules()] == [True, True, True, False]
+
+
+def test_a_smoothed_step_moves_g_and_leaves_c_and_the_rngs_as_autograd_does(tmp_path):
+    """One training step (the whole tiny train split in one batch): C sees the same images and loss
+    in both modes, so C, its BatchNorm statistics and the saved RNG states must come out
+    bit-identical; only G differs (the perturbed renders run in eval mode under no_grad)."""
+    cache = str(tmp_path / "cache")
+    runs = {}
+    for mode in ("autograd", "smoothed"):
+        train(tiny(cache, epochs=1, batch_size=48, **{"optim.selector_grad": mode}), tmp_path / mode)
+        runs[mode] = checkpoint.load(tmp_path / mode / "last.pt")
+    a, s = runs["autograd"]["model"], runs["smoothed"]["model"]
+    c_keys = [k for k in a if k.startswith("mvnet.")]
+    g_keys = [k for k in a if k.startswith("selector.") and a[k].is_floating_point()]
+    assert c_keys and g_keys
+    assert all(torch.equal(a[k], s[k]) for k in c_keys)
+    assert any(not torch.equal(a[k], s[k]) for k in g_keys)
+    assert torch.equal(runs["autograd"]["rng"]["torch"], runs["smoothed"]["rng"]["torch"])
+
+
+def test_smoothed_resume_is_exact(tmp_path):
+    cache = str(tmp_path / "cache")
+    kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1}
+    full = train(tiny(cache, epochs=2, **kw), tmp_path / "full")
+    train(tiny(cache, epochs=1, **kw), tmp_path / "a")
+    resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **kw), tmp_path / "b")
+    assert resumed["confusion_matrix"] == full["confusion_matrix"]
+    for h_a, h_b in zip(resumed["history"], full["history"], strict=True):
+        assert abs(h_a["train_loss"] - h_b["train_loss"]) <= 1e-6
