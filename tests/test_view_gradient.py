@@ -98,3 +98,23 @@ def test_smoothed_resume_is_exact(tmp_path):
     assert resumed["confusion_matrix"] == full["confusion_matrix"]
     for h_a, h_b in zip(resumed["history"], full["history"], strict=True):
         assert abs(h_a["train_loss"] - h_b["train_loss"]) <= 1e-6
+
+
+def test_view_landscape_reads_a_synthetic_views_run(tmp_path, capsys):
+    from mvtn_exp.bench import view_landscape
+
+    cfg = tiny(str(tmp_path / "cache"), views=1, epochs=1, **{"selector.name": "circular"})
+    cfg["dataset"] = {"name": "synthetic_views", "root": str(tmp_path / "views"), "num_per_class": [2, 1, 2]}
+    train(cfg, tmp_path / "run")
+    rows = view_landscape.landscape(tmp_path / "run", thetas=(0, 30), shapes=6, pairs=1, sigma=10.0)
+    assert [r["theta"] for r in rows] == [0, 30] and "autograd_cos" not in rows[0]
+    for key in ("loss", "acc", "autograd_cos", "autograd_towards", "smoothed_cos", "smoothed_towards"):
+        assert torch.isfinite(torch.tensor(rows[1][key])), key
+    assert -1 <= rows[1]["smoothed_cos"] <= 1 and 0 <= rows[1]["autograd_towards"] <= 1
+    # a run on another dataset, and no run at all: one line, exit 2
+    train(tiny(str(tmp_path / "cache"), views=1, epochs=1), tmp_path / "plain")
+    for bad, needle in ((tmp_path / "plain", "needs synthetic_views"), (tmp_path / "none", "no such file")):
+        with pytest.raises(SystemExit) as e:
+            view_landscape.main([str(bad)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and len(err) == 1 and needle in err[0]
