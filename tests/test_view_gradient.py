@@ -118,3 +118,32 @@ def test_view_landscape_reads_a_synthetic_views_run(tmp_path, capsys):
             view_landscape.main([str(bad)])
         err = capsys.readouterr().err.strip().splitlines()
         assert e.value.code == 2 and len(err) == 1 and needle in err[0]
+
+
+def test_axis_views_look_down_the_cup(tmp_path, capsys):
+    """The diagnostic cameras: view 1 on each shape's cup axis (so it sees the detail, by the
+    dataset's own visibility rule), the others 30 degrees around it; poles included."""
+    import numpy as np
+
+    from mvtn_exp.bench import axis_views as av
+    from mvtn_exp.data import synthetic_views as sv
+
+    ds = sv.SyntheticViews(tmp_path / "views", "test", (2, 1, 2), seed=0, num_points=64, progress=False)
+    axis = torch.as_tensor(ds._a["detail_axis"])
+    axis = torch.cat([axis, torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])])  # the poles too
+    azim, elev, dist = av.axis_views(axis, 4, 2.2)
+    assert azim.shape == (len(axis), 4) and torch.isfinite(azim).all() and torch.isfinite(elev).all()
+    d = torch.as_tensor(sv.camera_positions(azim.numpy(), elev.numpy(), 1.0))  # [N, M, 3] unit directions
+    cos = (d * torch.nn.functional.normalize(axis.double(), dim=1)[:, None]).sum(-1)
+    torch.testing.assert_close(cos[:, 0], torch.ones(len(axis), dtype=torch.float64), atol=1e-5, rtol=0)
+    torch.testing.assert_close(cos[:, 1:], torch.full((len(axis), 3), np.cos(np.radians(30.0)), dtype=torch.float64),
+                               atol=1e-5, rtol=0)
+    ring = d[:, 1:]
+    assert (ring - ring.roll(1, 1)).norm(dim=-1).gt(0.1).all()  # the ring's views are distinct
+    n = len(ds)
+    assert ds.detail_seen(azim[:n, :1].numpy(), elev[:n, :1].numpy(), dist[:n, :1].numpy()).all()
+    with pytest.raises(SystemExit) as e:
+        av.main(["--out", str(tmp_path / "run"), "views=1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "need dataset=synthetic_views" in err[0]
+    assert not (tmp_path / "run").exists()

@@ -255,3 +255,20 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
         key, msg = describe(cause, schema)
         print(f"{prog}: config error in {_config_file(key, choices, config_name, conf_dir)}: {msg}", file=sys.stderr)
         sys.exit(2)
+
+
+def compose_train_config(overrides: list[str], prog: str = "mvtn-train"):
+    """``mvtn-train``'s config from ``overrides``, for entry points that train outside Hydra's app
+    (``bench.axis_views``): a bad key is refused as ``mvtn-train`` refuses it (one line, exit 2)."""
+    from hydra import compose, initialize_config_module
+
+    from ..engine.trainer import as_config
+    from ..schema import TrainConfig, register_configs
+
+    register_configs()
+    check_overrides(prog, "train", TrainConfig, overrides, validate=TrainConfig.validate)
+    with initialize_config_module(version_base="1.3", config_module=CONF_MODULE):
+        cfg = compose("train", overrides=overrides)
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    plain.pop("hydra", None)
+    return as_config(plain)
