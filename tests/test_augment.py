@@ -97,7 +97,10 @@ def test_detail_report_counts_views_that_see_the_detail(tmp_path):
     res = {"azim": torch.from_numpy(azim), "elev": torch.from_numpy(elev), "dist": torch.full((n, 2), 2.2, dtype=torch.float64),
            "labels": labels, "pred": pred}
     rep = detail_report(ds, res)
-    assert rep == {"detail_seen": 0.5, "acc_detail_seen": 1.0, "acc_detail_unseen": 0.0}
+    angles = ds.detail_angles(azim, elev, np.full((n, 2), 2.2))
+    assert (angles[half] < 15).all() and (angles[~half] > 165).all()  # down the cup / from under its floor
+    assert rep == {"detail_seen": 0.5, "acc_detail_seen": 1.0, "acc_detail_unseen": 0.0,
+                   "detail_angle_median": float(np.median(angles.min(1)))}
     assert detail_report(object(), res) == {}  # datasets without a detail frame
 
 

@@ -267,3 +267,12 @@ def test_trains_through_the_one_trainer(tmp_path):
         warnings.simplefilter("ignore", UserWarning)
         m = train(cfg, tmp_path / "run")
     assert m["classes"] == CLASSES and m["test_size"] == len(CLASSES) and 0 <= m["test_acc"] <= 1
+
+
+def test_detail_angles_png(tmp_path):
+    from mvtn_exp.viz.views import detail_angles_png
+
+    angles = np.random.default_rng(0).uniform(0, 180, (20, 3))
+    assert detail_angles_png(angles, tmp_path / "a.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match=r"expected angles \[N, M\]"):
+        detail_angles_png(np.zeros((0, 2)), tmp_path / "b.png")

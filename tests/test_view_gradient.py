@@ -105,7 +105,8 @@ def test_view_landscape_reads_a_synthetic_views_run(tmp_path, capsys):
 
     cfg = tiny(str(tmp_path / "cache"), views=1, epochs=1, **{"selector.name": "circular"})
     cfg["dataset"] = {"name": "synthetic_views", "root": str(tmp_path / "views"), "num_per_class": [2, 1, 2]}
-    train(cfg, tmp_path / "run")
+    m = train(cfg, tmp_path / "run")
+    assert (tmp_path / "run" / "detail_angles.png").stat().st_size > 1000 and 0 <= m["test_detail_angle_median"] <= 180
     rows = view_landscape.landscape(tmp_path / "run", thetas=(0, 30), shapes=6, pairs=1, sigma=10.0)
     assert [r["theta"] for r in rows] == [0, 30] and "autograd_cos" not in rows[0]
     for key in ("loss", "acc", "autograd_cos", "autograd_towards", "smoothed_cos", "smoothed_towards"):

@@ -214,7 +214,22 @@ class SyntheticViews(PackedShapes):
         return sees_detail(a["detail_anchor"], a["detail_axis"], a["detail_size"], cams)
 
 
+    def detail_angles(self, azim, elev, dist) -> np.ndarray:
+        """``[N, M]`` degrees between shape n's cup axis and the line from its floor centre to camera m
+        (0: looking straight down the cup; the detail shows below about ``alpha`` = 60-66 degrees)."""
+        a = self._a
+        cams = camera_positions(np.asarray(azim), np.asarray(elev), np.asarray(dist))
+        return detail_angles(a["detail_anchor"], a["detail_axis"], cams)
+
+
 # ----------------------------------------------------------------------------- visibility
+def detail_angles(anchor, axis, cams) -> np.ndarray:
+    """``[N, M]`` degrees between ``axis [N, 3]`` and ``cams [N, M, 3] - anchor [N, 3]``."""
+    d = np.asarray(cams, np.float64) - np.asarray(anchor, np.float64)[:, None]
+    cos = (d * np.asarray(axis, np.float64)[:, None]).sum(-1) / np.maximum(np.linalg.norm(d, axis=-1), 1e-12)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def camera_positions(azim, elev, dist=2.2) -> np.ndarray:
     """Degrees -> ``[..., 3]`` positions ``dist * (cos e sin a, sin e, cos e cos a)`` (looking at the origin)."""
     a, e = np.radians(np.asarray(azim, np.float64)), np.radians(np.asarray(elev, np.float64))

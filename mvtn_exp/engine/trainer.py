@@ -16,6 +16,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader
@@ -29,6 +30,7 @@ from ..selectors.fixed import random_directions
 from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
+from ..viz.views import detail_angles_png
 from . import checkpoint, seeding, view_gradient
 from .provenance import provenance
 from .run_logger import RunLogger
@@ -163,7 +165,10 @@ def detail_report(dataset, res: dict) -> dict:
     def acc(mask):
         return float(right[mask].float().mean()) if bool(mask.any()) else None
 
-    return {"detail_seen": float(seen.float().mean()), "acc_detail_seen": acc(seen), "acc_detail_unseen": acc(~seen)}
+    nearest = dataset.detail_angles(res["azim"].double().numpy(), res["elev"].double().numpy(),
+                                    res["dist"].double().numpy()).min(1)
+    return {"detail_seen": float(seen.float().mean()), "acc_detail_seen": acc(seen), "acc_detail_unseen": acc(~seen),
+            "detail_angle_median": float(np.median(nearest))}
 
 
 def augment(batch: dict, cfg: TrainConfig) -> dict:
@@ -406,6 +411,9 @@ def train(cfg, run_dir, build_model=build_mvtn) -> dict:
         **{f"test_{k}": v for k, v in detail_report(datasets["test"], test).items()},
         "history": history, "config": cfg_dict, "provenance": origin,
     }
+    if hasattr(datasets["test"], "detail_angles") and test["azim"].numel():
+        detail_angles_png(datasets["test"].detail_angles(test["azim"].double().numpy(), test["elev"].double().numpy(),
+                                                         test["dist"].double().numpy()), run_dir / "detail_angles.png")
     write_results(run_dir, metrics)
     say(run_dir, f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val {best_acc:.4f} "
           f"at epoch {best_epoch + 1})")

@@ -91,6 +91,30 @@ def view_histograms_png(azim, elev, labels, classes: Sequence[str], path, bins: 
     return save_figure(fig, path)
 
 
+def detail_angles_png(angles, path, cone=(60.0, 66.0), title: str = "") -> Path:
+    """Histogram of ``angles [N, M]`` (degrees between each view and its shape's cup axis,
+    ``SyntheticViews.detail_angles``) -> ``path`` (PNG): all views, and each shape's nearest view;
+    the band ``cone`` marks the visibility cone's half-angle (the dataset's alpha range)."""
+    ang = _np(angles).astype(np.float64)
+    ang = ang[:, None] if ang.ndim == 1 else ang
+    if ang.ndim != 2 or ang.shape[0] == 0:
+        raise ValueError(f"detail_angles_png: expected angles [N, M] with N >= 1, got {ang.shape}")
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(5.0, 2.6), dpi=100)
+    bins = np.linspace(0.0, 180.0, 37)
+    ax.hist(ang.ravel(), bins=bins, color="tab:blue", alpha=0.6, label=f"all {ang.shape[1]} views")
+    ax.hist(ang.min(1), bins=bins, color="tab:orange", alpha=0.6, label="nearest view per shape")
+    ax.axvspan(*cone, color="0.7", alpha=0.5, label="visibility cone edge")
+    ax.set_xlim(0, 180)
+    ax.set_xlabel("angle between view and cup axis (deg)", fontsize=8)
+    ax.set_ylabel("views", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=7)
+    ax.set_title(title or f"{ang.shape[0]} shapes: median nearest {np.median(ang.min(1)):.0f} deg", fontsize=8)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def camera_positions(azim, elev, dist) -> np.ndarray:
     """``[M]`` views -> ``[M, 3]`` world positions ``dist * (cos e sin a, sin e, cos e cos a)``."""
     a, e, d = np.radians(_np(azim)), np.radians(_np(elev)), _np(dist)
