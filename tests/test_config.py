@@ -46,7 +46,11 @@ def test_every_group_option_composes(group):
 def test_every_experiment_composes(name):
     cfg = _compose([f"+experiment={name}"])
     assert cfg.renderer.image_size == cfg.image_size
-    if name.startswith("synthetic"):
+    if name.startswith("synthetic_views"):  # the README's view-dependent comparison: same setup both sides
+        assert cfg.dataset.name == "synthetic_views" and cfg.augment.rotate == "so3" and cfg.renderer.mode == "hard"
+        assert cfg.optim.selector_grad == "smoothed" and cfg.selector.name == (
+            "mvtn_poi" if name.endswith("learned") else "spherical")
+    elif name.startswith("synthetic"):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups
         assert cfg.views == 12 and cfg.image_size == 224 and cfg.epochs == 100 and cfg.batch_size == 20

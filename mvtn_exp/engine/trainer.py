@@ -298,9 +298,10 @@ def write_results(run_dir: Path, metrics: dict) -> Path:
 
 
 # ----------------------------------------------------------------------------- the loop
-def train(cfg, run_dir, build_model=build_mvtn) -> dict:
+def train(cfg, run_dir, build_model=None) -> dict:
     """Train MVTN per ``cfg`` (TrainConfig / dict / DictConfig) writing into ``run_dir``; return the metrics.
-    ``build_model(cfg, num_classes)``: the model factory (diagnostics such as ``bench.axis_views``)."""
+    ``build_model(cfg, num_classes)``: the model factory (default ``build_mvtn``; diagnostics such as
+    ``bench.axis_views`` pass their own)."""
     cfg = as_config(cfg)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -322,7 +323,7 @@ def train(cfg, run_dir, build_model=build_mvtn) -> dict:
     datasets = make_datasets(cfg)
     classes = list(datasets["train"].classes)
     loaders = {s: eval_loader(cfg, datasets[s]) for s in ("val", "test")}
-    model = build_model(cfg, num_classes=len(classes)).to(device)
+    model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
     opt, sched = make_optimizer(cfg, model)
     loss_fn = classification.loss_fn(cfg.task)
 
