@@ -15,9 +15,9 @@ differentiated at all, so any renderer works (hard included), and no image gradi
 Why (measured on ``synthetic_views`` with a C that reads the cup's detail at 0.95 from the cup's
 axis; 96 test shapes, cameras 20 / 40 / 60 degrees off the axis): the loss rises steeply away
 from the axis (0.15 on it, 1.7 at 20, 3.3 at 40 degrees), yet the renderer's camera gradient
-has cosine -0.03 / 0.04 / -0.24 with the direction towards the axis (and still about 0 averaged
-over 12 jittered views), while this estimate with K = 6, sigma = 12 has cosine 0.73 / 0.72 / 0.51
-(towards the axis for 94 / 92 / 80% of the shapes). See the README.
+has cosine 0.01 / 0.05 / -0.25 with the direction towards the axis (and still about 0 averaged
+over 12 jittered views), while this estimate with K = 6, sigma = 12 has cosine 0.72 / 0.72 / 0.48
+(towards the axis for 93 / 88 / 80% of the shapes; ``python -m mvtn_exp.bench.view_landscape``).
 
 The perturbed renders run under ``torch.no_grad()`` with the whole model in eval mode (fixed light
 and colour, BatchNorm running statistics, no dropout), so the two sides of a pair differ only in
