@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -64,7 +65,7 @@ def main(argv=None) -> None:
     from ..engine.trainer import train
 
     p = argparse.ArgumentParser(prog="python -m mvtn_exp.bench.axis_views", description=__doc__.splitlines()[0])
-    p.add_argument("--out", default=None, help="run folder (default outputs/bench/axis_views/<time>)")
+    p.add_argument("--out", default=None, help="run folder (default outputs/bench/axis_views/<time>-<pid>)")
     p.add_argument("overrides", nargs="*", help="mvtn-train keys, e.g. dataset=synthetic_views views=1")
     args = p.parse_args(argv)
     try:
@@ -73,7 +74,7 @@ def main(argv=None) -> None:
             raise ValueError(f"dataset={cfg.dataset.name}: axis views need dataset=synthetic_views (the detail frame)")
         if cfg.selector.learned:
             cfg.selector.name = "spherical"  # the views come from the axis; no G to train
-        out = Path(args.out or f"outputs/bench/axis_views/{time.strftime('%Y-%m-%d_%H-%M-%S')}")
+        out = Path(args.out or f"outputs/bench/axis_views/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}")
         train(cfg, out, build_model=build_axis_model)
     except (OSError, ValueError) as e:
         print(f"axis_views: {e}", file=sys.stderr)

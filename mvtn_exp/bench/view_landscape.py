@@ -28,6 +28,7 @@ from ..data.synthetic_views import view_angles
 from ..engine import checkpoint, view_gradient
 from ..engine.trainer import as_config, make_datasets
 from ..model import build_mvtn
+from ..tasks import classification
 
 
 def camera_move(azim: np.ndarray, elev: np.ndarray, g_azim: np.ndarray, g_elev: np.ndarray) -> np.ndarray:
@@ -67,7 +68,7 @@ def landscape(run_dir, thetas=(0, 20, 40, 60), shapes: int = 96, pairs: int = 6,
     side = rng.normal(size=axis.shape)
     side -= (side * axis).sum(1, keepdims=True) * axis
     side /= np.linalg.norm(side, axis=1, keepdims=True)
-    per_shape = torch.nn.CrossEntropyLoss(reduction="none")
+    per_shape = classification.loss_fn(cfg.task, reduction="none")
     render_loss = view_gradient.model_render_loss(model, batch, labels, per_shape)
     rows = []
     for theta in thetas:

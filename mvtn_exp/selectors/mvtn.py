@@ -64,7 +64,7 @@ REGRESSORS = ("compact", "official")
 OFFICIAL_DROPOUT = 0.5
 
 
-def regressor(in_features: int, features: int, views: int, outputs: int, init_std: Optional[float] = 0.0,
+def build_regressor(in_features: int, features: int, views: int, outputs: int, init_std: Optional[float] = 0.0,
               kind: str = "compact") -> nn.Sequential:
     """The MVTN MLP ``[B, in_features] -> [B, outputs]``: ``-> b -> b -> 5M -> outputs`` (compact),
     or ``-> b -> b -> 5M -> outputs -> outputs`` with BatchNorm, ReLU and dropout 0.5 after every
@@ -92,7 +92,7 @@ def regressor(in_features: int, features: int, views: int, outputs: int, init_st
 
 
 def regressor_parameters(views: int, features: int = 40, u0_input: bool = True, kind: str = "compact") -> int:
-    """``regressor``'s parameter count for 2M outputs (M = ``views``, b = ``features``), layer by
+    """``build_regressor``'s parameter count for 2M outputs (M = ``views``, b = ``features``), layer by
     layer: each hidden layer ``in * out`` weights, ``out`` biases and ``2 out`` BatchNorm
     parameters, then the last Linear's ``in * 2M + 2M``."""
     M, b = int(views), int(features)
@@ -101,9 +101,6 @@ def regressor_parameters(views: int, features: int = 40, u0_input: bool = True, 
     n = sum(i * o + o + 2 * o for i, o in hidden)  # Linear weights + bias, BatchNorm weight + bias
     last_in = 2 * M if kind == "official" else 5 * M
     return n + last_in * 2 * M + 2 * M
-
-
-_regressor = regressor  # the builder, under a name the attribute ``self.regressor`` does not shadow
 
 
 class MVTNSelector(ViewSelector):
@@ -167,7 +164,7 @@ class MVTNSelector(ViewSelector):
         else:
             self.encoder = build_point_encoder(point_encoder, out_features=b, **(point_encoder_kwargs or {}))
         self.regressor_kind = regressor
-        self.regressor = _regressor(b + 2 * M * self.uses_u0, b, M, (3 if self.learn_distance else 2) * M, init_std,
+        self.regressor = build_regressor(b + 2 * M * self.uses_u0, b, M, (3 if self.learn_distance else 2) * M, init_std,
                                     regressor)
 
     def initial_views(self, batch: int = 1) -> Views:
