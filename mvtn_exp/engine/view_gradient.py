@@ -32,6 +32,7 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
+
 @contextmanager
 def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
     """``module`` and all its children in eval mode inside the block; every flag restored after."""
