@@ -11,6 +11,7 @@ from .models.multiview import build_multiview
 from .render.renderer import MultiViewRenderer
 from .schema import SHAPES, TrainConfig
 from .selectors import build_selector
+from .selectors.polarity import ViewPolarity
 
 
 class MVTN(nn.Module):
@@ -21,8 +22,9 @@ class MVTN(nn.Module):
     """
 
     def __init__(self, selector: nn.Module, renderer: MultiViewRenderer, mvnet: nn.Module, shape: str = "mesh",
-                 selector_points: Optional[int] = None):
+                 selector_points: Optional[int] = None, polarity: Optional[ViewPolarity] = None):
         super().__init__()
+        self.polarity = polarity  # which side of its axis each learned view looks from (selectors/polarity.py)
         self.selector_points = selector_points  # a learned G reads the first n points (None: all)
         if shape not in SHAPES:
             raise ValueError(f"shape={shape!r}: expected one of {list(SHAPES)}")
@@ -45,7 +47,8 @@ class MVTN(nn.Module):
         n = self.selector_points
         if n is not None and getattr(self.selector, "learned", False):
             points = points[:, :n]  # the points are uniform surface samples in random order
-        return self.selector(points.to(self.device))
+        views = self.selector(points.to(self.device))
+        return views if self.polarity is None else self.polarity(views)
 
     def render(self, batch: dict, azim, elev, dist):
         """R: the batch's shapes seen from ``[B, M]`` views -> images ``[B, M, 3, H, W]``."""
@@ -95,5 +98,6 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
                             pool=cfg.mvnet.pool, dropout=cfg.mvnet.dropout)
     with torch.random.fork_rng(devices=[]):
         selector = build_selector_from(cfg)
+    polarity = ViewPolarity(cfg.views) if cfg.optim.flip_explore > 0 else None
     return MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,
-                selector_points=cfg.selector.num_points)
+                selector_points=cfg.selector.num_points, polarity=polarity)

@@ -246,7 +246,10 @@ class OptimConfig:
     ``selector_grad``: how G's gradient is got: ``autograd`` (the paper's: through the
     differentiable renderer) or ``smoothed`` (the gradient of the task loss smoothed over the views
     by a Gaussian of ``smoothed_sigma`` degrees, estimated from ``smoothed_pairs`` antithetic pairs
-    of perturbed renders per step; the renderer is not differentiated: ``engine/view_gradient.py``)."""
+    of perturbed renders per step; the renderer is not differentiated: ``engine/view_gradient.py``).
+    ``flip_explore``: for the first ``flip_epochs`` epochs each training view of a learned G is
+    rendered from its antipode with this probability, and a view whose flipped renders had the
+    lower loss turns round (``selectors/polarity.py``); 0 (default): off."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -262,6 +265,8 @@ class OptimConfig:
     selector_grad: str = "autograd"
     smoothed_pairs: int = 2
     smoothed_sigma: float = 10.0
+    flip_explore: float = 0.0
+    flip_epochs: int = 10
 
     def validate(self) -> "OptimConfig":
         one_of("optim", self.name, OPTIMIZERS)
@@ -278,6 +283,9 @@ class OptimConfig:
         one_of("optim.selector_grad", self.selector_grad, SELECTOR_GRADIENTS)
         at_least("optim.smoothed_pairs", self.smoothed_pairs, 1)
         at_least("optim.smoothed_sigma", self.smoothed_sigma, 0.0, strict=True)
+        if not 0.0 <= self.flip_explore < 1.0:
+            raise ValueError(f"optim.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
+        at_least("optim.flip_epochs", self.flip_epochs, 1)
         return self
 
 
@@ -360,6 +368,9 @@ class TrainConfig:
         if self.optim.selector_grad == "smoothed" and self.selector.learn_distance:
             raise ValueError("optim.selector_grad=smoothed estimates G's azimuth and elevation gradients only; "
                              "selector.learn_distance=true needs optim.selector_grad=autograd")
+        if self.optim.flip_explore > 0 and not self.selector.learned:
+            raise ValueError(f"optim.flip_explore={self.optim.flip_explore}: turning views round needs a learned "
+                             f"selector, got selector={self.selector.name}")
         check_device("device", self.device)
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
                      self.optim, self.augment, self.logger):

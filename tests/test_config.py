@@ -93,6 +93,9 @@ def test_top_level_keys_reach_the_parts():
     (["optim.smoothed_pairs=0"], "optim.smoothed_pairs"),
     (["optim.smoothed_sigma=0"], "optim.smoothed_sigma"),
     (["optim.selector_grad=smoothed", "selector.learn_distance=true"], "needs optim.selector_grad=autograd"),
+    (["optim.flip_explore=1.0"], "expected a probability in [0, 1)"),
+    (["optim.flip_explore=0.5", "optim.flip_epochs=0"], "optim.flip_epochs"),
+    (["selector=spherical", "optim.flip_explore=0.5"], "needs a learned selector, got selector=spherical"),
     (["-m", "views=1,0"], "views=0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),
 ])

@@ -85,8 +85,11 @@ def landscape(run_dir, thetas=(0, 20, 40, 60), shapes: int = 96, pairs: int = 6,
         ga, ge = view_gradient.smoothed_view_gradient(render_loss, (azim.detach(), elev.detach(), dist), pairs, sigma,
                                                       view_gradient.noise_generator(seed, int(theta)))
         smooth = camera_move(a, e, ga[:, 0].double().numpy(), ge[:, 0].double().numpy())
-        row = {"theta": theta, "loss": float(loss.detach().mean()), "acc": float((logits.argmax(1) == labels).float().mean())}
-        if theta > 0:  # on the axis there is no direction towards it
+        prob = torch.softmax(logits.detach().double(), 1)
+        row = {"theta": theta, "loss": float(loss.detach().mean()), "acc": float((logits.argmax(1) == labels).float().mean()),
+               "p_true": float(prob.gather(1, labels[:, None]).mean()),
+               "entropy": float(-(prob * prob.clamp_min(1e-300).log()).sum(1).mean())}
+        if 0 < theta < 180:  # on the axis (or opposite it) there is no direction towards it
             row.update(zip(("autograd_cos", "autograd_towards"), towards(auto, d, axis)))
             row.update(zip(("smoothed_cos", "smoothed_towards"), towards(smooth, d, axis)))
         rows.append(row)
@@ -99,11 +102,13 @@ def main(argv=None) -> None:
     p.add_argument("--shapes", type=int, default=96)
     p.add_argument("--pairs", type=int, default=6, help="antithetic pairs of the smoothed estimate")
     p.add_argument("--sigma", type=float, default=12.0, help="smoothing std, degrees")
+    p.add_argument("--thetas", default="0,20,40,60", help="comma-separated degrees from the cup axis")
     p.add_argument("--json", action="store_true", help="print JSON rows instead of a Markdown table")
     args = p.parse_args(argv)
     torch.manual_seed(0)
     try:
-        rows = landscape(args.run_dir, shapes=args.shapes, pairs=args.pairs, sigma=args.sigma)
+        thetas = [float(t) for t in args.thetas.split(",")]
+        rows = landscape(args.run_dir, thetas=thetas, shapes=args.shapes, pairs=args.pairs, sigma=args.sigma)
     except (OSError, ValueError) as e:  # a missing or unfit run: one line, exit 2
         print(f"view_landscape: {e}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -111,10 +116,10 @@ def main(argv=None) -> None:
     if args.json:
         print(json.dumps(rows))
         return
-    print(f"| theta (deg from the cup axis) | loss | acc | autograd: cosine / towards | "
-          f"smoothed ({args.pairs} pairs, sigma {args.sigma:g}): cosine / towards |\n|---|---|---|---|---|")
+    print(f"| theta (deg from the cup axis) | loss | acc | p(true class) | entropy | autograd: cosine / towards | "
+          f"smoothed ({args.pairs} pairs, sigma {args.sigma:g}): cosine / towards |\n|---|---|---|---|---|---|---|")
     for r in rows:
-        cells = [f"{r['theta']}", f"{r['loss']:.2f}", f"{r['acc']:.2f}"]
+        cells = [f"{r['theta']:g}", f"{r['loss']:.3f}", f"{r['acc']:.2f}", f"{r['p_true']:.3f}", f"{r['entropy']:.3f}"]
         for k in ("autograd", "smoothed"):
             cells.append(f"{r[k + '_cos']:.2f} / {r[k + '_towards']:.0%}" if f"{k}_cos" in r else "-")
         print("| " + " | ".join(cells) + " |")

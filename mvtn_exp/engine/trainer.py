@@ -171,6 +171,17 @@ def detail_report(dataset, res: dict) -> dict:
             "detail_angle_median": float(np.median(nearest))}
 
 
+def exploring_flips(model: MVTN, cfg: TrainConfig, epoch: int) -> bool:
+    """Whether training epoch ``epoch`` (0-based) renders some views from their antipodes."""
+    return (model.polarity is not None and epoch < cfg.optim.flip_epochs
+            and epoch >= cfg.optim.selector_warmup_epochs)
+
+
+def flip_generator(seed: int, step: int) -> torch.Generator:
+    """The flip draws' own generator for global step ``step`` (a stream apart from the smoothed noise)."""
+    return view_gradient.noise_generator(int(seed) + 7_919, step)
+
+
 def augment(batch: dict, cfg: TrainConfig) -> dict:
     """Training augmentation (``cfg.augment``): a new random rotation of every shape, from torch's RNG."""
     if cfg.augment.rotate == "none":
@@ -207,6 +218,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     acc = _Epoch()
     warm = bool(groups["selector"]) and epoch < cfg.optim.selector_warmup_epochs  # G frozen, C alone
     smoothed = bool(groups["selector"]) and not warm and cfg.optim.selector_grad == "smoothed"
+    flips = model.polarity if exploring_flips(model, cfg, epoch) else None
     per_shape_loss = classification.loss_fn(cfg.task, reduction="none")
     bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=None if cfg.logger.progress else True)
     it = iter(bar)
@@ -220,6 +232,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
         labels = batch["labels"].to(model.device)
         with timer.stage("selector"):
             views = warmup_views(model, batch, cfg) if warm else model.select(batch)
+            if flips is not None:  # some views from their antipodes (selectors/polarity.py)
+                views, flip_mask = flips.explore(views, cfg.optim.flip_explore, flip_generator(cfg.seed, step))
         with timer.stage("render"), torch.set_grad_enabled(not smoothed):
             images = model.render(batch, *views)  # smoothed: R is not differentiated
         with timer.stage("backbone"):
@@ -228,6 +242,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
         if not bool(torch.isfinite(loss.detach())):
             raise TrainingDiverged(f"epoch {epoch + 1}, step {step + 1}: non-finite loss {float(loss.detach())} "
                                    f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
+        if flips is not None:
+            flips.record(per_shape_loss(logits.detach(), labels), flip_mask)
         objective = loss
         if smoothed:  # G's gradient from the loss at perturbed views (view_gradient.py), charged to G
             with timer.stage("selector"):
@@ -357,6 +373,10 @@ def train(cfg, run_dir, build_model=None) -> dict:
             tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch), opt, cfg, epoch, loss_fn,
                                        timer, logger, step)
             skipped += tr["skipped"]
+            if exploring_flips(model, cfg, epoch):
+                turned = model.polarity.decide()
+                if turned:
+                    say(run_dir, f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
             val = classification.evaluate(model, loaders["val"], len(classes), desc="val",
                                           progress=cfg.logger.progress)
             sched.step()
@@ -367,7 +387,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
                             "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
                             "skipped": tr["skipped"], "clipped": tr["clipped"],
                             "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
-                            **offsets, **detail, **lrs, "seconds": seconds})
+                            **offsets, **detail, **lrs, "seconds": seconds,
+                            **({"views_flipped": model.polarity.flipped.tolist()} if model.polarity is not None else {})})
             logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
                             "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
                             "views/offset_azim": offsets["view_offset_azim"],
