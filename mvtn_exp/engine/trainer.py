@@ -31,7 +31,7 @@ from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from ..viz.views import detail_angles_png
-from . import checkpoint, seeding, view_gradient
+from . import checkpoint, cost, seeding, view_gradient
 from .provenance import provenance
 from .run_logger import RunLogger
 from .step_timer import StepTimer
@@ -205,7 +205,7 @@ class _Epoch:
 
     def result(self) -> dict:
         n, s = max(self.seen, 1), max(self.steps, 1)
-        return {"loss": self.loss / n, "acc": self.correct / n, "skipped": self.skipped, "clipped": self.clipped,
+        return {"loss": self.loss / n, "acc": self.correct / n, "seen": self.seen, "skipped": self.skipped, "clipped": self.clipped,
                 "grad_norm_selector": self.g_norm_sum / s, "grad_norm_mvnet": self.c_norm_sum / s}
 
 
@@ -344,6 +344,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
     loss_fn = classification.loss_fn(cfg.task)
 
     start, best_acc, best_epoch, skipped, history, step = 0, -1.0, -1, 0, [], 0
+    train_seconds, train_shapes = 0.0, 0  # this process's training passes (engine/cost.py)
     if resume is not None:
         if list(resume.get("classes", classes)) != classes:
             raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
@@ -367,48 +368,51 @@ def train(cfg, run_dir, build_model=None) -> dict:
     logger = RunLogger(run_dir, cfg.logger)
     timer = StepTimer(device)
     try:
-        for epoch in range(start, cfg.epochs):
-            t0 = time.perf_counter()
-            lrs = {f"lr_{g['name']}": g["lr"] for g in opt.param_groups}
-            tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch), opt, cfg, epoch, loss_fn,
-                                       timer, logger, step)
-            skipped += tr["skipped"]
-            if exploring_flips(model, cfg, epoch):
-                turned = model.polarity.decide()
-                if turned:
-                    say(run_dir, f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
-            val = classification.evaluate(model, loaders["val"], len(classes), desc="val",
-                                          progress=cfg.logger.progress)
-            sched.step()
-            seconds = time.perf_counter() - t0
-            offsets = view_offsets(model, val["azim"], val["elev"])
-            detail = {f"val_{k}": v for k, v in detail_report(datasets["val"], val).items()}
-            history.append({"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
-                            "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
-                            "skipped": tr["skipped"], "clipped": tr["clipped"],
-                            "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
-                            **offsets, **detail, **lrs, "seconds": seconds,
-                            **({"views_flipped": model.polarity.flipped.tolist()} if model.polarity is not None else {})})
-            logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
-                            "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
-                            "views/offset_azim": offsets["view_offset_azim"],
-                            "views/offset_elev": offsets["view_offset_elev"],
-                            **({"views/detail_seen": detail["val_detail_seen"]} if detail else {})}, step)
-            logger.histogram("views/azim", val["azim"], step)
-            logger.histogram("views/elev", val["elev"], step)
-            if val["images"] is not None:
-                logger.views("views/val", val["images"], step)
-            improved = val["acc"] > best_acc
-            if improved:
-                best_acc, best_epoch = val["acc"], epoch
-            state = payload(epoch)
-            if improved:
-                checkpoint.save_atomic(run_dir / "best.pt", state)
-            checkpoint.save_atomic(run_dir / "last.pt", state)
-            say(run_dir, f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
-                  f"val acc {val['acc']:.3f}{' (best)' if improved else ''} | "
-                  f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
-                  + (f"detail seen {detail['val_detail_seen']:.2f} | " if detail else "") + f"{seconds:.1f}s")
+        with cost.peak_memory(device) as train_memory:
+            for epoch in range(start, cfg.epochs):
+                t0 = time.perf_counter()
+                lrs = {f"lr_{g['name']}": g["lr"] for g in opt.param_groups}
+                tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch), opt, cfg, epoch, loss_fn,
+                                           timer, logger, step)
+                train_seconds += time.perf_counter() - t0
+                train_shapes += tr["seen"]
+                skipped += tr["skipped"]
+                if exploring_flips(model, cfg, epoch):
+                    turned = model.polarity.decide()
+                    if turned:
+                        say(run_dir, f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
+                val = classification.evaluate(model, loaders["val"], len(classes), desc="val",
+                                              progress=cfg.logger.progress)
+                sched.step()
+                seconds = time.perf_counter() - t0
+                offsets = view_offsets(model, val["azim"], val["elev"])
+                detail = {f"val_{k}": v for k, v in detail_report(datasets["val"], val).items()}
+                history.append({"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
+                                "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
+                                "skipped": tr["skipped"], "clipped": tr["clipped"],
+                                "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
+                                **offsets, **detail, **lrs, "seconds": seconds,
+                                **({"views_flipped": model.polarity.flipped.tolist()} if model.polarity is not None else {})})
+                logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
+                                "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
+                                "views/offset_azim": offsets["view_offset_azim"],
+                                "views/offset_elev": offsets["view_offset_elev"],
+                                **({"views/detail_seen": detail["val_detail_seen"]} if detail else {})}, step)
+                logger.histogram("views/azim", val["azim"], step)
+                logger.histogram("views/elev", val["elev"], step)
+                if val["images"] is not None:
+                    logger.views("views/val", val["images"], step)
+                improved = val["acc"] > best_acc
+                if improved:
+                    best_acc, best_epoch = val["acc"], epoch
+                state = payload(epoch)
+                if improved:
+                    checkpoint.save_atomic(run_dir / "best.pt", state)
+                checkpoint.save_atomic(run_dir / "last.pt", state)
+                say(run_dir, f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
+                      f"val acc {val['acc']:.3f}{' (best)' if improved else ''} | "
+                      f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
+                      + (f"detail seen {detail['val_detail_seen']:.2f} | " if detail else "") + f"{seconds:.1f}s")
 
         if not (run_dir / "best.pt").is_file():  # resumed at the last epoch without a best.pt
             log.warning("no best.pt in %s: testing the last model", run_dir)
@@ -416,9 +420,18 @@ def train(cfg, run_dir, build_model=None) -> dict:
             checkpoint.save_atomic(run_dir / "best.pt", payload(start - 1))
         best = checkpoint.load(run_dir / "best.pt", map_location=device)
         model.load_state_dict(best["model"])
-        test = classification.evaluate(model, loaders["test"], len(classes), desc="test",
-                                       progress=cfg.logger.progress)
-        logger.scalars({"test/acc": test["acc"], "test/mean_class_acc": test["mean_class_acc"]}, step)
+        with cost.peak_memory(device) as infer_memory:
+            t_test = time.perf_counter()
+            test = classification.evaluate(model, loaders["test"], len(classes), desc="test",
+                                           progress=cfg.logger.progress)
+            infer_seconds = time.perf_counter() - t_test
+        first = next(iter(loaders["test"]), None)
+        costs = cost.run_cost(model, cfg, train_seconds=train_seconds, train_shapes=train_shapes,
+                              infer_seconds=infer_seconds, infer_shapes=test["n"], train_memory=train_memory,
+                              infer_memory=infer_memory, render_seconds=timer.seconds["render"],
+                              flops=cost.flops_per_shape(model, first) if first is not None else {})
+        logger.scalars({"test/acc": test["acc"], "test/mean_class_acc": test["mean_class_acc"],
+                        **{f"cost/{k}": v for k, v in costs.items() if isinstance(v, (int, float))}}, step)
     finally:
         logger.close()
 
@@ -429,7 +442,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
         "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
         "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
-        "step_seconds": timer.means(), **{f"test_{k}": v for k, v in view_offsets(model, test["azim"], test["elev"]).items()},
+        "step_seconds": timer.means(), "cost": costs, **{f"test_{k}": v for k, v in view_offsets(model, test["azim"], test["elev"]).items()},
         **{f"test_{k}": v for k, v in detail_report(datasets["test"], test).items()},
         "history": history, "config": cfg_dict, "provenance": origin,
     }
