@@ -1,0 +1,196 @@
+"""The speed/accuracy trade of a sweep: one row per setting, its Pareto front, and which keys matter.
+
+``mvtn-tradeoff DIR`` reads a sweep folder (``mvtn-train -m ...``: one job folder per run, each with
+``.hydra/overrides.yaml`` and ``metrics.json``) and writes into it:
+
+- ``tradeoff_jobs.csv``: one row per job (its swept keys, status, test accuracy and cost);
+- ``tradeoff.csv``: one row per setting (the jobs that differ only in ``seed``): the swept keys,
+  seeds, test accuracy mean and sample std over seeds, the mean of each cost field
+  (``engine/cost.py``), and whether the setting is Pareto-optimal for inference and for training
+  time (no other setting is at least as accurate and at least as fast, and better in one);
+- ``tradeoff.md``: those tables, the failed jobs, and the effect of each key;
+- ``pareto.png``: accuracy against inference ms per shape and against training s per shape (log
+  scale), one point per setting with its std over seeds, the front joined and labelled.
+
+The effect of a key: over every pair of settings that differ only in that key, at neighbouring
+values (numeric order when the values are numbers, first-seen order otherwise), the mean change
+of test accuracy (points) and the mean factor of inference and training time per step.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+from .sweep import _override_values, _setting, collect
+
+COST_FIELDS = ("infer_ms_per_shape", "train_seconds_per_shape", "train_peak_mib", "infer_peak_mib",
+               "params_selector", "params_mvnet", "flops_selector_per_shape", "flops_mvnet_per_shape",
+               "render_ms_per_shape", "render_pixels_per_shape")
+NOT_SWEPT = ("seed",)
+
+
+class TradeoffError(ValueError):
+    """A sweep folder the study cannot read (no finished job, mixed datasets, missing cost)."""
+
+
+def job_rows(sweep_dir) -> list[dict]:
+    """Every job of the sweep with its status; finished ones carry ``test_acc``, ``dataset`` and the cost."""
+    sweep_dir = Path(sweep_dir)
+    if not sweep_dir.is_dir():
+        raise TradeoffError(f"{sweep_dir}: not a folder")
+    rows = collect(sweep_dir)
+    for r in rows:
+        if r.get("status") != "ok":
+            continue
+        m = json.loads((sweep_dir / r["job"] / "metrics.json").read_text())
+        r["dataset"] = ((m.get("config") or {}).get("dataset") or {}).get("name")
+        missing = [k for k in COST_FIELDS if k not in (m.get("cost") or {})]
+        if missing:
+            raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no cost fields {missing[:3]}"
+                                f"{'...' if len(missing) > 3 else ''} (written by runs since 2026-12-02; re-run the job)")
+        r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"])
+    ok = [r for r in rows if r.get("status") == "ok"]
+    if not ok:
+        raise TradeoffError(f"{sweep_dir}: no finished job (a job folder with metrics.json) among {len(rows)}")
+    datasets = sorted({str(r["dataset"]) for r in ok})
+    if len(datasets) > 1:
+        first = {d: next(r["job"] for r in ok if str(r["dataset"]) == d) for d in datasets}
+        raise TradeoffError(f"{sweep_dir}: jobs from different datasets "
+                            + ", ".join(f"{d} (e.g. {j})" for d, j in first.items()) + "; compare one dataset")
+    return rows
+
+
+def _number(v: str):
+    try:
+        return float(v)
+    except ValueError:
+        return None
+
+
+def settings(rows: list[dict]) -> tuple[list[dict], list[str]]:
+    """Rows per setting (finished jobs only) and the swept keys (overridden keys whose value varies)."""
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        if r.get("status") == "ok":
+            groups.setdefault(_setting(r["overrides"]), []).append(r)
+    values = {s: _override_values(m[0]["overrides"]) for s, m in groups.items()}
+    keys = list(dict.fromkeys(k for v in values.values() for k in v if k not in NOT_SWEPT
+                              and _setting([f"{k}=x"]) != "(defaults)"))
+    swept = [k for k in keys if len({v.get(k, "") for v in values.values()}) > 1] or keys
+    out = []
+    for s, members in groups.items():
+        accs = [float(r["test_acc"]) for r in members]
+        mean = sum(accs) / len(accs)
+        std = math.sqrt(sum((a - mean) ** 2 for a in accs) / (len(accs) - 1)) if len(accs) > 1 else 0.0
+        row = {"setting": s, **{k: values[s].get(k, "") for k in swept}, "seeds": len(accs),
+               "test_acc": mean, "test_acc_std": std}
+        row.update({k: sum(float(r[k]) for r in members) / len(members) for k in COST_FIELDS})
+        out.append(row)
+    for time_key, flag in (("infer_ms_per_shape", "pareto_infer"), ("train_seconds_per_shape", "pareto_train")):
+        for r in out:
+            r[flag] = not any(o is not r and o["test_acc"] >= r["test_acc"] and o[time_key] <= r[time_key]
+                              and (o["test_acc"] > r["test_acc"] or o[time_key] < r[time_key]) for o in out)
+    return out, swept
+
+
+def key_effects(rows: list[dict], swept: list[str]) -> list[dict]:
+    """Per swept key and step between neighbouring values: mean accuracy change (points) and time factors."""
+    effects = []
+    for key in swept:
+        others = [k for k in swept if k != key]
+        vals = list(dict.fromkeys(r[key] for r in rows))
+        if all(_number(v) is not None for v in vals):
+            vals.sort(key=_number)
+        for lo, hi in zip(vals, vals[1:]):
+            pairs = [(a, b) for a in rows for b in rows if a[key] == lo and b[key] == hi
+                     and all(a[k] == b[k] for k in others)]
+            if not pairs:
+                continue
+            n = len(pairs)
+            effects.append({
+                "key": key, "step": f"{lo} -> {hi}", "pairs": n,
+                "acc_points": 100 * sum(b["test_acc"] - a["test_acc"] for a, b in pairs) / n,
+                "infer_factor": math.exp(sum(math.log(b["infer_ms_per_shape"] / a["infer_ms_per_shape"])
+                                             for a, b in pairs) / n),
+                "train_factor": math.exp(sum(math.log(b["train_seconds_per_shape"] / a["train_seconds_per_shape"])
+                                             for a, b in pairs) / n)})
+    return sorted(effects, key=lambda e: -abs(e["acc_points"]))
+
+
+def _label(row: dict, swept: list[str]) -> str:
+    return ",".join(f"{k.split('.')[-1]}={row[k]}" for k in swept) or row["setting"]
+
+
+def pareto_png(rows: list[dict], swept: list[str], path) -> Path:
+    from ..viz.plots import pyplot, save_figure
+
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
+    for ax, key, flag, xlabel in ((axes[0], "infer_ms_per_shape", "pareto_infer", "inference ms per shape"),
+                                  (axes[1], "train_seconds_per_shape", "pareto_train", "training s per shape")):
+        for front in (False, True):
+            pts = [r for r in rows if r[flag] == front]
+            if pts:
+                ax.errorbar([r[key] for r in pts], [r["test_acc"] for r in pts], yerr=[r["test_acc_std"] for r in pts],
+                            fmt="o" if front else ".", color="C3" if front else "0.55", capsize=2,
+                            label="Pareto-optimal" if front else "other settings")
+        line = sorted((r for r in rows if r[flag]), key=lambda r: r[key])
+        ax.plot([r[key] for r in line], [r["test_acc"] for r in line], "-", color="C3", alpha=0.6)
+        for r in line:
+            ax.annotate(_label(r, swept), (r[key], r["test_acc"]), fontsize=7, xytext=(3, 3),
+                        textcoords="offset points")
+        ax.set_xscale("log")
+        ax.margins(x=0.25)  # room for the labels of the last points
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("test accuracy (mean, std over seeds)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right")
+    return save_figure(fig, path)
+
+
+def _csv(path: Path, rows: list[dict], fields: list[str]) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+
+
+def write_tradeoff(sweep_dir) -> dict:
+    """Write the four files (module docstring) into ``sweep_dir``; returns their paths, the setting
+    rows, the key effects and the failed jobs. Raises ``TradeoffError`` for a folder it cannot read."""
+    sweep_dir = Path(sweep_dir)
+    rows = job_rows(sweep_dir)
+    per_setting, swept = settings(rows)
+    effects = key_effects(per_setting, swept)
+    failed = [f"{r['job']}: {r.get('status')}" + (f": {r['error']}" if r.get("error") else "")
+              for r in rows if r.get("status") != "ok"]
+    jobs = [{**_override_values(r["overrides"]), **r} for r in rows]
+    _csv(sweep_dir / "tradeoff_jobs.csv", jobs, ["job", *swept, "seed", "status", "test_acc", *COST_FIELDS])
+    _csv(sweep_dir / "tradeoff.csv", per_setting,
+         [*swept, "seeds", "test_acc", "test_acc_std", *COST_FIELDS, "pareto_infer", "pareto_train"])
+    lines = ["# Speed/accuracy trade", "", f"{len(rows)} jobs in `{sweep_dir}`, {len(per_setting)} settings, "
+             f"dataset `{next(r['dataset'] for r in rows if r.get('status') == 'ok')}`.", "",
+             "P: Pareto-optimal (inference / training time): no setting is at least as accurate and as fast.", "",
+             "| " + " | ".join(swept) + " | seeds | test acc | infer ms/shape | train s/shape | train / infer peak MiB "
+             "| params G / C | GFLOPs G / C per shape | render ms/shape | P |",
+             "|" + "---|" * (len(swept) + 9)]
+    for r in sorted(per_setting, key=lambda r: r["infer_ms_per_shape"]):
+        p = ("I" if r["pareto_infer"] else "-") + ("T" if r["pareto_train"] else "-")
+        lines.append("| " + " | ".join(str(r[k]) for k in swept) + f" | {r['seeds']} | {r['test_acc']:.3f} ± "
+                     f"{r['test_acc_std']:.3f} | {r['infer_ms_per_shape']:.2f} | {r['train_seconds_per_shape']:.3f} | "
+                     f"{r['train_peak_mib']:.0f} / {r['infer_peak_mib']:.0f} | {r['params_selector']:.0f} / "
+                     f"{r['params_mvnet']:.0f} | {r['flops_selector_per_shape'] / 1e9:.3g} / "
+                     f"{r['flops_mvnet_per_shape'] / 1e9:.3g} | {r['render_ms_per_shape']:.1f} | {p} |")
+    lines += ["", "## Which keys matter (mean over settings that differ only in the key)", "",
+              "| key | step | pairs | test acc change (points) | inference time x | training time x |", "|---|---|---|---|---|---|"]
+    lines += [f"| {e['key']} | {e['step']} | {e['pairs']} | {e['acc_points']:+.1f} | {e['infer_factor']:.2f} | "
+              f"{e['train_factor']:.2f} |" for e in effects]
+    if failed:
+        lines += ["", f"## Failed jobs ({len(failed)}, not in the tables)", ""] + [f"- {f}" for f in failed]
+    md = sweep_dir / "tradeoff.md"
+    md.write_text("\n".join(lines) + "\n")
+    png = pareto_png(per_setting, swept, sweep_dir / "pareto.png")
+    return {"csv": sweep_dir / "tradeoff.csv", "jobs_csv": sweep_dir / "tradeoff_jobs.csv", "md": md, "png": png,
+            "settings": per_setting, "effects": effects, "failed": failed}

@@ -1,0 +1,92 @@
+"""mvtn-tradeoff: settings over seeds, the Pareto front and key effects against hand-worked sweeps; bad folders exit 2."""
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+import sys
+
+import pytest
+
+from mvtn_exp.cli.tradeoff import main
+from mvtn_exp.engine.cost import RENDERER_NOTE
+from mvtn_exp.engine.tradeoff import COST_FIELDS, write_tradeoff
+
+from test_sweep_summary import _job
+
+
+def _metrics(acc, infer_ms, train_s, dataset="synthetic"):
+    cost = dict.fromkeys(COST_FIELDS, 1.0)
+    cost.update(infer_ms_per_shape=infer_ms, train_seconds_per_shape=train_s, renderer_note=RENDERER_NOTE)
+    return {"test_acc": acc, "test_mean_class_acc": acc, "best_val_acc": acc, "mean_epoch_seconds": 1.0,
+            "cost": cost, "config": {"dataset": {"name": dataset}}}
+
+
+# views x image_size, two seeds each: (acc seed 0, acc seed 1, inference ms, training s)
+GRID = {(1, 32): (0.50, 0.60, 1.0, 0.10), (1, 64): (0.70, 0.70, 3.0, 0.30),
+        (4, 32): (0.60, 0.70, 4.0, 0.20), (4, 64): (0.90, 0.80, 12.0, 0.60)}
+
+
+def _sweep(root):
+    i = 0
+    for (v, s), (a0, a1, ms, ts) in GRID.items():
+        for seed, acc in ((0, a0), (1, a1)):
+            _job(root, f"{i}_views={v},image_size={s},seed={seed}", [f"views={v}", f"image_size={s}", f"seed={seed}",
+                 "logger.progress=false"], _metrics(acc, ms * (1 + 0.1 * seed), ts))
+            i += 1
+    return root
+
+
+def test_settings_front_and_effects_match_hand_work(tmp_path):
+    _sweep(tmp_path)
+    _job(tmp_path, "8_views=12,image_size=64,seed=0", ["views=12", "image_size=64", "seed=0"],
+         status={"status": "training diverged", "error": "non-finite loss"})
+    out = write_tradeoff(tmp_path)
+    rows = {(r["views"], r["image_size"]): r for r in out["settings"]}
+    assert set(rows) == {("1", "32"), ("1", "64"), ("4", "32"), ("4", "64")}
+    r = rows[("4", "64")]
+    assert r["seeds"] == 2 and math.isclose(r["test_acc"], 0.85) and math.isclose(r["test_acc_std"], math.sqrt(0.005))
+    assert math.isclose(r["infer_ms_per_shape"], 12.0 * 1.05)
+    # inference front: 1x32 (0.55, 1.05 ms), 1x64 (0.70, 3.15), 4x64 (0.85, 12.6); 4x32 (0.65, 4.2) is beaten by 1x64
+    assert {k for k, r in rows.items() if r["pareto_infer"]} == {("1", "32"), ("1", "64"), ("4", "64")}
+    # training time: 0.1 / 0.2 / 0.3 / 0.6 s for 0.55 / 0.65 / 0.70 / 0.85: every setting is on the front
+    assert {k for k, r in rows.items() if r["pareto_train"]} == {("1", "32"), ("4", "32"), ("1", "64"), ("4", "64")}
+    eff = {(e["key"], e["step"]): e for e in out["effects"]}
+    views = eff[("views", "1 -> 4")]  # pairs at 32 px (+0.10) and 64 px (+0.15)
+    assert views["pairs"] == 2 and math.isclose(views["acc_points"], 12.5)
+    assert math.isclose(views["infer_factor"], math.sqrt(4.0 * 4.0)) and math.isclose(views["train_factor"], 2.0)
+    size = eff[("image_size", "32 -> 64")]  # +0.15 and +0.20
+    assert math.isclose(size["acc_points"], 17.5) and math.isclose(size["infer_factor"], 3.0)
+    assert out["effects"][0]["key"] == "image_size"  # the larger accuracy change first
+    jobs = list(csv.DictReader(open(out["jobs_csv"])))
+    assert len(jobs) == 9 and sum(j["status"] != "ok" for j in jobs) == 1
+    assert len(list(csv.DictReader(open(out["csv"])))) == 4
+    md = out["md"].read_text()
+    assert "8_views=12,image_size=64,seed=0: training diverged" in md and out["failed"]
+    assert out["png"].stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("make, needle", [
+    (lambda d: None, "no finished job"),
+    (lambda d: _job(d, "0_seed=0", ["seed=0"], status={"status": "failed", "error": "x"}), "no finished job"),
+    (lambda d: (_job(d, "0_a=1", ["a=1"], _metrics(0.5, 1, 1)), _job(d, "1_a=2", ["a=2"], _metrics(0.5, 1, 1, "modelnet40"))),
+     "jobs from different datasets"),
+    (lambda d: _job(d, "0_a=1", ["a=1"], {"test_acc": 0.5, "config": {"dataset": {"name": "synthetic"}}}),
+     "no cost fields"),
+])
+def test_bad_folders_are_one_line_and_exit_2(tmp_path, capsys, make, needle):
+    make(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path)])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0] and str(tmp_path) in err[0] and err[0].startswith("mvtn-tradeoff: ")
+    assert not (tmp_path / "tradeoff.md").exists()
+
+
+def test_cli_prints_the_table_and_the_path_last(tmp_path):
+    _sweep(tmp_path)
+    out = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.tradeoff", str(tmp_path)], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.strip().splitlines()
+    assert lines[-1] == str(tmp_path / "tradeoff.md") and "| views | image_size | seeds |" in out.stdout
