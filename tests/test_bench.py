@@ -33,7 +33,7 @@ def _positive_finite(x) -> bool:
 def test_quick_benchmark_cli(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "mvtn_exp.cli.bench", "quick=true", "repeats=2", "progress=false", f"hydra.run.dir={tmp_path}"],
-        capture_output=True, text=True, check=True, timeout=120,
+        capture_output=True, text=True, check=True, timeout=300,
     )
     lines = out.stdout.strip().splitlines()
     md_path = Path(lines[-1])
@@ -59,6 +59,20 @@ def test_quick_benchmark_cli(tmp_path):
     edges = _table(md, "Soft edges")
     assert len(edges) == 3 and all(int(r[3]) > 0 and 0 <= float(r[4].rstrip("%")) <= 100 for r in edges)
     assert len(targets) == 8 and all(re.match(r"PASS|MISS|n/a", r[-1]) for r in targets)
+    modules = _table(md, "Modules")
+    assert len(modules) == 14  # R: 3 kinds x M in {1, 4}; G: 3 + the regressor alone; C: 2 backbones x 2 M
+    params = {(r[0], r[1]): int(r[2].replace(",", "")) for r in modules}
+    from mvtn_exp.models.multiview import build_multiview
+
+    n_resnet = sum(p.numel() for p in build_multiview("mvcnn", "resnet18", 40).parameters())
+    assert params[("C MVCNN, ResNet-18", "M=4, 64 px")] == n_resnet
+    assert 0 < params[("G regressor alone (features given)", "M=4")] < params[
+        ("G mvtn_spherical (PointNet + regressor)", "M=4, 256 points")]
+    for r in modules:
+        assert float(r[4]) > 0 and float(r[5]) > float(r[4]) * 0.5
+        assert (r[3] == "n/a (not FLOPs)") == r[0].startswith("R ")
+    c1, c4 = (float(r[3]) for r in modules if r[0] == "C MVCNN, ResNet-18")
+    assert math.isclose(c4, 4 * c1, rel_tol=0.01)  # FLOPs per shape grow with the views (3 digits printed)
 
     data = json.loads((tmp_path / "bench.json").read_text())
     assert data["meta"]["options"]["quick"] is True

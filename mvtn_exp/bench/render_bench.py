@@ -207,6 +207,7 @@ class Results:
     lod: list = field(default_factory=list)
     batch8: list = field(default_factory=list)
     edges: list = field(default_factory=list)
+    modules: list = field(default_factory=list)
     targets: list = field(default_factory=list)
 
 
@@ -379,7 +380,13 @@ class Bench:
         out += [(f"lod {name} {fpp} faces/px", lambda n=name, f=fpp: self.job_lod(n, f))
                 for name in g.lod_meshes for fpp in LOD_FACES_PER_PIXEL]
         out.append(("soft edge error", self.job_edge_error))
+        out.append(("module table", self.job_modules))
         return out
+
+    def job_modules(self) -> None:
+        from .modules import module_rows  # modules.py builds on this file's helpers
+
+        self.res.modules = module_rows(self.opts.quick, self.dev, self.opts.repeats, self.opts.time_budget_s, self.opts.seed)
 
     def job_speed_mode(self) -> None:
         self.res.meta["timing_malloc"] = ("glibc mmap threshold 32 MiB, trim 64 MiB (set with mallopt)"
@@ -578,6 +585,10 @@ def to_markdown(res: Results) -> str:
                  + md_table(["mesh", "px", "shading", "edge pixels", f"coverage off > {edge_error.TOL:g}", "max coverage error",
                              f"colour off > {edge_error.TOL:g}", "max colour error", "most faces in a pixel"], rows))
 
+    if res.modules:
+        from .modules import markdown as modules_markdown
+
+        parts.append(modules_markdown(res.modules))
     rows = [[t["target"], t["value"], t["limit"], t["status"]] for t in res.targets]
     parts.append("## Targets\n\n" + md_table(["target", "measured", "limit", "status"], rows))
     return "\n\n".join(parts) + "\n"
