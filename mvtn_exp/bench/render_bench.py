@@ -63,6 +63,8 @@ class BenchOptions:
     dense_max_pairs: float = 2.0e8
     seed: int = 0
     progress: bool = True
+    modules: bool = True  # the paper's module table (bench/modules.py)
+    scaling: bool = True  # time and memory against faces, pixels, views, batch (bench/scaling.py)
 
 
 @dataclass
@@ -208,6 +210,7 @@ class Results:
     batch8: list = field(default_factory=list)
     edges: list = field(default_factory=list)
     modules: list = field(default_factory=list)
+    scaling: list = field(default_factory=list)
     targets: list = field(default_factory=list)
 
 
@@ -371,6 +374,8 @@ class Bench:
                for n, s, m, k, sh in configs]
         if g.batch8:
             out += [(f"memory batch8 {k}", lambda k=k: self.job_batch8(k)) for k in ("mesh", "points")]
+        if self.opts.scaling:
+            out.append(("scaling curves: memory", self.job_scaling_memory))
         out.append(("switch allocator to speed mode", self.job_speed_mode))
         out += [(f"resnet18 {M}x{g.resnet_size}px", lambda M=M: self.job_resnet(M, g.resnet_size)) for M in g.views]
         out += [(f"time {n} {s}px M={m} K={k} {sh}", lambda a=(n, s, m, k, sh): self.job_render_time(*a))
@@ -380,8 +385,21 @@ class Bench:
         out += [(f"lod {name} {fpp} faces/px", lambda n=name, f=fpp: self.job_lod(n, f))
                 for name in g.lod_meshes for fpp in LOD_FACES_PER_PIXEL]
         out.append(("soft edge error", self.job_edge_error))
-        out.append(("module table", self.job_modules))
+        if self.opts.modules:
+            out.append(("module table", self.job_modules))
+        if self.opts.scaling:
+            out.append(("scaling curves: time", self.job_scaling_time))
         return out
+
+    def job_scaling_memory(self) -> None:
+        from .scaling import Scaling
+
+        self._scaling = Scaling(self.opts.quick, self.dev, self.opts.repeats, self.opts.time_budget_s)
+        self._scaling.measure_memory()
+
+    def job_scaling_time(self) -> None:
+        self._scaling.measure_time()
+        self.res.scaling = self._scaling.fits()
 
     def job_modules(self) -> None:
         from .modules import module_rows  # modules.py builds on this file's helpers
@@ -589,6 +607,10 @@ def to_markdown(res: Results) -> str:
         from .modules import markdown as modules_markdown
 
         parts.append(modules_markdown(res.modules))
+    if res.scaling:
+        from .scaling import markdown as scaling_markdown
+
+        parts.append(scaling_markdown(res.scaling, o["quick"]) + "\n\nPlotted in `scaling.png` beside this file.")
     rows = [[t["target"], t["value"], t["limit"], t["status"]] for t in res.targets]
     parts.append("## Targets\n\n" + md_table(["target", "measured", "limit", "status"], rows))
     return "\n\n".join(parts) + "\n"
@@ -602,6 +624,10 @@ def write_outputs(res: Results, out_dir: Path) -> tuple[Path, Path, str]:
     md_path.write_text(md)
     js = out_dir / "bench.json"
     js.write_text(json.dumps(_jsonable(asdict(res)), indent=1))
+    if res.scaling:
+        from .scaling import plot
+
+        plot(res.scaling, out_dir / "scaling.png")
     return md_path, js, md
 
 

@@ -44,6 +44,8 @@ class BenchAppConfig:
     dense_max_pairs: float = 2.0e8
     seed: int = 0
     progress: bool = True
+    modules: bool = True
+    scaling: bool = True
 
 
 ConfigStore.instance().store(name="bench_schema", node=BenchAppConfig)
@@ -89,7 +91,8 @@ def _app(cfg) -> None:
             raise ValueError(f"threads={obj.threads}: expected >= 1 or null")
         torch.set_num_threads(obj.threads)
     opts = BenchOptions(quick=obj.quick, repeats=obj.repeats, device=obj.device, time_budget_s=obj.time_budget_s,
-                        dense_max_pairs=obj.dense_max_pairs, seed=obj.seed, progress=obj.progress)
+                        dense_max_pairs=obj.dense_max_pairs, seed=obj.seed, progress=obj.progress,
+                        modules=obj.modules, scaling=obj.scaling)
     run_bench(opts, Path(HydraConfig.get().runtime.output_dir))
 
 
