@@ -249,7 +249,10 @@ class OptimConfig:
     of perturbed renders per step; the renderer is not differentiated: ``engine/view_gradient.py``).
     ``flip_explore``: for the first ``flip_epochs`` epochs each training view of a learned G is
     rendered from its antipode with this probability, and a view whose flipped renders had the
-    lower loss turns round (``selectors/polarity.py``); 0 (default): off."""
+    lower loss turns round (``selectors/polarity.py``); 0 (default): off. ``bn_recalibrate``: before
+    each validation, C's BatchNorm statistics are re-estimated over this many training batches
+    rendered as validation renders them (``engine/precise_bn.py``); 0 (default, the paper's): the
+    running averages of training."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -267,6 +270,7 @@ class OptimConfig:
     smoothed_sigma: float = 10.0
     flip_explore: float = 0.0
     flip_epochs: int = 10
+    bn_recalibrate: int = 0
 
     def validate(self) -> "OptimConfig":
         one_of("optim", self.name, OPTIMIZERS)
@@ -286,6 +290,7 @@ class OptimConfig:
         if not 0.0 <= self.flip_explore < 1.0:
             raise ValueError(f"optim.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
         at_least("optim.flip_epochs", self.flip_epochs, 1)
+        at_least("optim.bn_recalibrate", self.bn_recalibrate, 0)
         return self
 
 

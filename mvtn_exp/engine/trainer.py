@@ -31,7 +31,7 @@ from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from ..viz.views import detail_angles_png
-from . import checkpoint, cost, seeding, view_gradient
+from . import checkpoint, cost, precise_bn, seeding, view_gradient
 from .provenance import provenance
 from .run_logger import RunLogger
 from .step_timer import StepTimer
@@ -381,6 +381,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
                     turned = model.polarity.decide()
                     if turned:
                         say(run_dir, f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
+                if cfg.optim.bn_recalibrate:
+                    precise_bn.recalibrate(model, train_loader(cfg, datasets["train"], epoch), cfg.optim.bn_recalibrate)
                 val = classification.evaluate(model, loaders["val"], len(classes), desc="val",
                                               progress=cfg.logger.progress)
                 sched.step()
