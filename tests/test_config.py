@@ -50,7 +50,7 @@ def test_every_experiment_composes(name):
         assert cfg.dataset.name == "synthetic_views" and cfg.augment.rotate == "so3" and cfg.renderer.mode == "hard"
         assert cfg.optim.selector_grad == "smoothed" and cfg.selector.name == (
             "mvtn_poi" if name.endswith("learned") else "spherical")
-    elif name.startswith("synthetic"):
+    elif name.startswith(("synthetic", "tradeoff")):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups
         assert cfg.views == 12 and cfg.image_size == 224 and cfg.epochs == 100 and cfg.batch_size == 20
@@ -143,3 +143,19 @@ def test_help_lists_this_projects_groups_and_keys():
     assert "augment.{rotate}" in out and "views=4" in out
     v = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.eval", "--version"], capture_output=True, text=True, timeout=60)
     assert v.returncode == 0 and v.stdout.startswith("mvtn-eval (mvtn-exp) ")
+
+
+def test_tradeoff_study_grid_composes_and_compares_fixed_with_learned():
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
+        params = compose("train", overrides=["+experiment=tradeoff_synthetic"], return_hydra_config=True).hydra.sweeper.params
+    grid = {k: str(v).split(",") for k, v in params.items()}
+    assert grid["seed"] == ["0", "1", "2"] and set(grid["renderer"]) == {"hard", "soft"}
+    learned = []
+    for key, values in grid.items():
+        for value in values:
+            cfg = _compose(["+experiment=tradeoff_synthetic", f"{key}={value}"])
+            learned.append(cfg.selector.learned)
+            assert cfg.dataset.name == "synthetic" and cfg.epochs == 4
+    assert any(learned) and not all(learned)
