@@ -159,3 +159,12 @@ def test_tradeoff_study_grid_composes_and_compares_fixed_with_learned():
             learned.append(cfg.selector.learned)
             assert cfg.dataset.name == "synthetic" and cfg.epochs == 4
     assert any(learned) and not all(learned)
+
+
+def test_multirun_with_cfg_is_one_line_not_hydras_traceback(capsys):
+    with pytest.raises(SystemExit) as e:
+        check_overrides("mvtn-train", "train", TrainConfig, ["-m", "views=1,4", "--cfg", "job"],
+                        validate=TrainConfig.validate)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cfg" in err[0] and "-m/--multirun" in err[0]

@@ -222,7 +222,12 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
     if "--help" in argv or "-h" in argv:
         print(project_help(prog, config_name, schema, config_module))
         sys.exit(0)
-    if any(a in HYDRA_INFO_FLAGS or a.split("=")[0] in HYDRA_INFO_FLAGS for a in argv):
+    info = [a for a in argv if a in HYDRA_INFO_FLAGS or a.split("=")[0] in HYDRA_INFO_FLAGS]
+    if info and any(a in MULTIRUN_FLAGS for a in argv):
+        print(f"{prog}: error: {info[0]} prints one composed config and cannot be combined with -m/--multirun; "
+              "drop -m (and give one value per key) to see a sweep job's config", file=sys.stderr)
+        sys.exit(2)
+    if info:
         return
     from hydra import compose, initialize_config_module
 
