@@ -168,3 +168,19 @@ def test_multirun_with_cfg_is_one_line_not_hydras_traceback(capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--cfg" in err[0] and "-m/--multirun" in err[0]
+
+
+@pytest.mark.parametrize("name", _options("preset"))
+def test_presets_compose_and_state_their_measured_cost(name):
+    cfg = _compose([f"+preset={name}"])
+    text = (CONF / "preset" / f"{name}.yaml").read_text()
+    assert text.startswith("# @package _global_")
+    if name == "paper":
+        assert cfg.views == 12 and cfg.image_size == 224 and cfg.selector.regressor == "official"
+    else:  # on the measured front: the comment carries its accuracy and time per shape
+        assert "test accuracy" in text and "ms per shape" in text and "tradeoff_synthetic" in text
+        assert not cfg.selector.learned and cfg.views == 1
+
+
+def test_presets_are_the_three_documented():
+    assert _options("preset") == ["balanced", "fast", "paper"]

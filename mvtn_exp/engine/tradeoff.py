@@ -142,6 +142,7 @@ def pareto_png(rows: list[dict], swept: list[str], path) -> Path:
             ax.annotate(_label(r, swept), (r[key], r["test_acc"]), fontsize=7, xytext=(3, 3),
                         textcoords="offset points")
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(plt.NullFormatter())  # minor labels overlap on short ranges
         ax.margins(x=0.25)  # room for the labels of the last points
         ax.set_xlabel(xlabel)
         ax.set_ylabel("test accuracy (mean, std over seeds)")
