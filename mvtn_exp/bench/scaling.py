@@ -27,6 +27,7 @@ from .render_bench import Views, med_ms, peak_of, render_fns, renderer_for, rota
 
 BASE_FACES, BASE_SIZE, BASE_VIEWS, BASE_BATCH = 8192, 128, 4, 1
 MODES = (("hard", 1), ("soft smooth", 8))
+AXIS_LABELS = {"faces": "faces", "pixels": "image side (px)", "views": "views M", "batch": "shapes per batch"}
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,8 @@ def plot(fits: list[dict], path) -> None:
             axes[0, j].loglog(f["values"], f["ms"], "o-", label=f"{f['mode']}: a = {f['time_exponent']:.2f}")
             axes[1, j].loglog(f["values"], f["peak_mib"], "o-", label=f"{f['mode']}: a = {f['memory_exponent']:.2f}")
         for i, what in enumerate(("fwd+bwd ms", "extra peak MiB")):
-            axes[i, j].set_xlabel(name)
+            axes[i, j].set_xlabel(AXIS_LABELS.get(name, name))
+            axes[i, j].xaxis.set_minor_formatter(plt.NullFormatter())  # minor labels overlap
             axes[i, j].set_ylabel(what)
             axes[i, j].grid(alpha=0.3, which="both")
             axes[i, j].legend(fontsize=8)
