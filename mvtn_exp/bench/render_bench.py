@@ -90,13 +90,17 @@ def grid_for(opts: BenchOptions) -> Grid:
 
 
 # ---------------------------------------------------------------------------- scenes
-def torus(name: str, device) -> Meshes:
+def torus_of(sections: int, device, name: str) -> Meshes:
+    """The benchmark torus (radii 0.7 / 0.3) with ``sections`` x ``sections`` quads: 2 sections^2 faces."""
     import trimesh
 
-    n = TORUS_SECTIONS[name]
-    t = trimesh.creation.torus(major_radius=0.7, minor_radius=0.3, major_sections=n, minor_sections=n)
+    t = trimesh.creation.torus(major_radius=0.7, minor_radius=0.3, major_sections=sections, minor_sections=sections)
     return Meshes.from_list([torch.tensor(np.asarray(t.vertices), dtype=torch.float32, device=device)],
                             [torch.tensor(np.asarray(t.faces), dtype=torch.long, device=device)], names=[name])
+
+
+def torus(name: str, device) -> Meshes:
+    return torus_of(TORUS_SECTIONS[name], device, name)
 
 
 def torus_points(count: int, seed: int, device) -> PointClouds:

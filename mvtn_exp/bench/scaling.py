@@ -20,10 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import trimesh
 
 from ..data.shapes import Meshes
-from .render_bench import Views, med_ms, peak_of, render_fns, renderer_for, rotated_copies_y, time_runs
+from .render_bench import Views, med_ms, peak_of, render_fns, renderer_for, rotated_copies_y, time_runs, torus_of
 
 BASE_FACES, BASE_SIZE, BASE_VIEWS, BASE_BATCH = 8192, 128, 4, 1
 MODES = (("hard", 1), ("soft smooth", 8))
@@ -52,13 +51,11 @@ def base(quick: bool) -> dict:
 def torus_faces(faces: int, device) -> Meshes:
     """A torus of about ``faces`` faces (2 n^2 for n sections)."""
     n = max(3, round(math.sqrt(faces / 2)))
-    t = trimesh.creation.torus(major_radius=0.7, minor_radius=0.3, major_sections=n, minor_sections=n)
-    return Meshes.from_list([torch.tensor(t.vertices, dtype=torch.float32, device=device)],
-                            [torch.tensor(t.faces, dtype=torch.int64, device=device)], names=[f"torus-{2 * n * n}"])
+    return torus_of(n, device, f"torus-{2 * n * n}")
 
 
-def scene(point: dict, device):
-    """(shapes, renderer args) of one curve point: the batch as turned copies of one torus."""
+def scene(point: dict, device) -> Meshes:
+    """The shapes of one curve point: ``point["batch"]`` copies of one torus, turned about Y."""
     mesh = torus_faces(point["faces"], device)
     if point["batch"] > 1:
         B = point["batch"]

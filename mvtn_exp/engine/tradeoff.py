@@ -23,7 +23,7 @@ import json
 import math
 from pathlib import Path
 
-from .sweep import _override_values, _setting, collect
+from .sweep import _override_values, _setting, collect, failed_jobs
 
 COST_FIELDS = ("infer_ms_per_shape", "train_seconds_per_shape", "train_peak_mib", "infer_peak_mib",
                "params_selector", "params_mvnet", "flops_selector_per_shape", "flops_mvnet_per_shape",
@@ -165,8 +165,7 @@ def write_tradeoff(sweep_dir) -> dict:
     rows = job_rows(sweep_dir)
     per_setting, swept = settings(rows)
     effects = key_effects(per_setting, swept)
-    failed = [f"{r['job']}: {r.get('status')}" + (f": {r['error']}" if r.get("error") else "")
-              for r in rows if r.get("status") != "ok"]
+    failed = failed_jobs(sweep_dir, rows)
     jobs = [{**_override_values(r["overrides"]), **r} for r in rows]
     _csv(sweep_dir / "tradeoff_jobs.csv", jobs, ["job", *swept, "seed", "status", "test_acc", *COST_FIELDS])
     _csv(sweep_dir / "tradeoff.csv", per_setting,
