@@ -32,6 +32,7 @@ MVNET_NAMES = tuple(MULTIVIEW)
 TASKS = ("classification",)
 WARMUP_VIEWS = ("u0", "random")
 SELECTOR_GRADIENTS = ("autograd", "smoothed")  # how G gets its gradient (engine/view_gradient.py)
+SELECTOR_LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
 OPTIMIZERS = ("adamw",)
 SCHEDULES = ("cosine", "step")
 
@@ -252,7 +253,10 @@ class OptimConfig:
     lower loss turns round (``selectors/polarity.py``); 0 (default): off. ``bn_recalibrate``: before
     each validation, C's BatchNorm statistics are re-estimated over this many training batches
     rendered as validation renders them (``engine/precise_bn.py``); 0 (default, the paper's): the
-    running averages of training."""
+    running averages of training. ``selector_loss``: what G's smoothed gradient minimises: ``task``
+    (the paper's: C's own loss) or ``centered_logit`` (``mean_c z_c - z_y``: the task loss without
+    its label-free confidence term ``logsumexp z - mean z``, which pulls G to views where C's output
+    is flat while C is still at chance; ``tasks/classification.py``); needs ``selector_grad=smoothed``."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -268,6 +272,7 @@ class OptimConfig:
     selector_grad: str = "autograd"
     smoothed_pairs: int = 2
     smoothed_sigma: float = 10.0
+    selector_loss: str = "task"
     flip_explore: float = 0.0
     flip_epochs: int = 10
     bn_recalibrate: int = 0
@@ -287,6 +292,10 @@ class OptimConfig:
         one_of("optim.selector_grad", self.selector_grad, SELECTOR_GRADIENTS)
         at_least("optim.smoothed_pairs", self.smoothed_pairs, 1)
         at_least("optim.smoothed_sigma", self.smoothed_sigma, 0.0, strict=True)
+        one_of("optim.selector_loss", self.selector_loss, SELECTOR_LOSSES)
+        if self.selector_loss != "task" and self.selector_grad != "smoothed":
+            raise ValueError(f"optim.selector_loss={self.selector_loss}: G's own loss is estimated from perturbed "
+                             "renders; it needs optim.selector_grad=smoothed (autograd trains G on C's loss)")
         if not 0.0 <= self.flip_explore < 1.0:
             raise ValueError(f"optim.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
         at_least("optim.flip_epochs", self.flip_epochs, 1)

@@ -93,6 +93,8 @@ def test_top_level_keys_reach_the_parts():
     (["optim.smoothed_pairs=0"], "optim.smoothed_pairs"),
     (["optim.smoothed_sigma=0"], "optim.smoothed_sigma"),
     (["optim.selector_grad=smoothed", "selector.learn_distance=true"], "needs optim.selector_grad=autograd"),
+    (["optim.selector_loss=entropy"], "optim.selector_loss"),
+    (["optim.selector_loss=centered_logit"], "needs optim.selector_grad=smoothed"),
     (["optim.flip_explore=1.0"], "expected a probability in [0, 1)"),
     (["optim.flip_explore=0.5", "optim.flip_epochs=0"], "optim.flip_epochs"),
     (["selector=spherical", "optim.flip_explore=0.5"], "needs a learned selector, got selector=spherical"),

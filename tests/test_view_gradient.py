@@ -89,6 +89,40 @@ def test_a_smoothed_step_moves_g_and_leaves_c_and_the_rngs_as_autograd_does(tmp_
     assert torch.equal(runs["autograd"]["rng"]["torch"], runs["smoothed"]["rng"]["torch"])
 
 
+def test_centered_logit_is_cross_entropy_without_its_label_free_part():
+    """centered_logit = CE - (logsumexp z - mean z); summed over every possible label it is 0 for
+    any logits (so a C whose output ignores the label gives G no pull), while CE's sum is not."""
+    from mvtn_exp.schema import TaskConfig
+    from mvtn_exp.tasks.classification import centered_logit_loss, selector_loss_fn
+
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(5, 8, generator=g, dtype=torch.float64) * 3
+    y = torch.randint(0, 8, (5,), generator=g)
+    ce = torch.nn.functional.cross_entropy(z, y, reduction="none")
+    assert torch.allclose(centered_logit_loss(z, y), ce - (torch.logsumexp(z, 1) - z.mean(1)))
+    every = torch.stack([centered_logit_loss(z, torch.full((5,), c)) for c in range(8)])
+    assert every.sum(0).abs().max() < 1e-12
+    ce_every = torch.stack([torch.nn.functional.cross_entropy(z, torch.full((5,), c), reduction="none") for c in range(8)])
+    assert ce_every.sum(0).min() > 8 * 2.0  # CE summed over labels is at least K log K and grows with peaked logits
+    assert selector_loss_fn("centered_logit", TaskConfig()) is centered_logit_loss
+    assert torch.equal(selector_loss_fn("task", TaskConfig())(z, y), ce)
+
+
+def test_selector_loss_changes_g_only(tmp_path):
+    """optim.selector_loss=centered_logit: the same step as the task loss for C (bit-identical C and
+    RNG states), a different G."""
+    cache = str(tmp_path / "cache")
+    runs = {}
+    for name in ("task", "centered_logit"):
+        kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1, "optim.selector_loss": name}
+        train(tiny(cache, epochs=1, batch_size=48, **kw), tmp_path / name)
+        runs[name] = checkpoint.load(tmp_path / name / "last.pt")
+    a, s = runs["task"]["model"], runs["centered_logit"]["model"]
+    assert all(torch.equal(a[k], s[k]) for k in a if k.startswith("mvnet."))
+    assert any(not torch.equal(a[k], s[k]) for k in a if k.startswith("selector.") and a[k].is_floating_point())
+    assert torch.equal(runs["task"]["rng"]["torch"], runs["centered_logit"]["rng"]["torch"])
+
+
 def test_smoothed_resume_is_exact(tmp_path):
     cache = str(tmp_path / "cache")
     kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1}

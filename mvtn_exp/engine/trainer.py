@@ -220,6 +220,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     smoothed = bool(groups["selector"]) and not warm and cfg.optim.selector_grad == "smoothed"
     flips = model.polarity if exploring_flips(model, cfg, epoch) else None
     per_shape_loss = classification.loss_fn(cfg.task, reduction="none")
+    selector_loss = classification.selector_loss_fn(cfg.optim.selector_loss, cfg.task)
     bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=None if cfg.logger.progress else True)
     it = iter(bar)
     while True:
@@ -248,7 +249,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
         if smoothed:  # G's gradient from the loss at perturbed views (view_gradient.py), charged to G
             with timer.stage("selector"):
                 g = view_gradient.smoothed_view_gradient(
-                    view_gradient.model_render_loss(model, batch, labels, per_shape_loss), views,
+                    view_gradient.model_render_loss(model, batch, labels, selector_loss), views,
                     cfg.optim.smoothed_pairs, cfg.optim.smoothed_sigma, view_gradient.noise_generator(cfg.seed, step))
                 objective = loss + view_gradient.surrogate(views, *g)
         with timer.stage("optimizer"):

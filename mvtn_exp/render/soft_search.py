@@ -161,7 +161,8 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
     if hidden_below is not None:
         hidden = _hidden_faces(faces, boxes, hidden_below, chunks["H"], W)
         boxes = tiles.PixelBoxes(boxes.image, boxes.j0, torch.where(hidden, boxes.j0 - 1, boxes.j1), boxes.i0, boxes.i1)
-    span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W)
+    # pass 2 keeps only pixels outside the face (unless keep_inside): skip its interior columns
+    span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W, skip_inside=not keep_inside)
     out = []
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
         cand = tiles.concat(parts)
@@ -245,12 +246,16 @@ def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, slots_log_miss: torc
         return out
     with torch.no_grad():
         rim = slots_log_miss.detach() > ranking.log_tol(slots_log_miss.dtype)
-        owner = torch.searchsorted(sel.pix, sel.rest_pix)
+        # the active-pixel index of each rest entry: a dense pixel -> row table (cheaper than a search)
+        row = torch.full((pf.num_images * H * W,), -1, dtype=torch.long, device=sel.pix.device)
+        row.index_copy_(0, sel.pix, torch.arange(P, device=sel.pix.device))
+        owner = row.index_select(0, sel.rest_pix)
         keep = torch.nonzero(rim.index_select(0, owner)).squeeze(1)
     if len(keep) == 0:
         return out
     rest = tiles.Selection(sel.rest_pix.index_select(0, keep), sel.rest_prim.index_select(0, keep).unsqueeze(1))
-    d = face_fragments(pf, rest, H=H, W=W, need_bary=False, need_dist=True, interior_edge=ranking.interior).dist[:, 0]
+    d = face_fragments(pf, rest, H=H, W=W, need_bary=False, need_dist=True, interior_edge=ranking.interior,
+                       need_depth=False).dist[:, 0]
     return out.index_add(0, owner.index_select(0, keep), torch.nn.functional.logsigmoid(d / ranking.sigma))
 
 

@@ -14,6 +14,27 @@ def loss_fn(cfg: TaskConfig, reduction: str = "mean"):
     return nn.CrossEntropyLoss(label_smoothing=cfg.label_smoothing, reduction=reduction)
 
 
+def centered_logit_loss(logits: Tensor, labels: Tensor) -> Tensor:
+    """``[B, K], [B] -> [B]``: ``mean_c z_c - z_y``, minus the true class's logit above the mean.
+
+    Cross-entropy is this plus ``logsumexp z - mean z``, a term that does not depend on the label:
+    it is smallest where the logits are flat. While C is at chance that term is all the loss can
+    change, so a G trained on cross-entropy is drawn to views where C's output is most uniform
+    (on ``synthetic_views``: the cup's axis from either side, measured). This loss keeps only the
+    label's part: if the logits do not depend on the label, its expectation is 0 for every view."""
+    return logits.mean(1) - logits.gather(1, labels[:, None]).squeeze(1)
+
+
+def selector_loss_fn(name: str, cfg: TaskConfig):
+    """G's per-shape loss ``(logits [B, K], labels [B]) -> [B]`` for ``optim.selector_loss=name``:
+    ``task`` (C's own loss, the paper's) or ``centered_logit`` (``centered_logit_loss``)."""
+    if name == "task":
+        return loss_fn(cfg, reduction="none")
+    if name == "centered_logit":
+        return centered_logit_loss
+    raise ValueError(f"optim.selector_loss={name!r}: expected task or centered_logit")
+
+
 def summarize(confusion: Tensor) -> dict:
     """``confusion [K, K]`` (rows: true, columns: predicted) -> acc, mean per-class acc (over the
     classes present), per-class acc (None for an absent class) and n."""
