@@ -135,8 +135,7 @@ def face_planes(x0, y0, x1, y1, x2, y2) -> list[torch.Tensor]:
     return out
 
 
-def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float, small_box: int, W: int,
-              skip_inside: bool = False):
+def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float, small_box: int, W: int):
     """``span(prim, y) -> (j0, j1)`` for ``tiles.candidate_chunks``: per face and box row, the pixel
     columns within ``radius`` (NDC) of the triangle. planes: ``face_planes`` of the boxes' faces.
 
@@ -144,11 +143,6 @@ def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float
     x = s_k y + t_k, from the left when A_k > 0, from the right when A_k < 0; edges with A_k = 0
     are horizontal and never bound a row inside the face's box. Only faces whose box has more
     than ``small_box`` pixels go row by row.
-
-    skip_inside: the span also gives ``(k0, k1)``, the columns that lie inside the triangle by
-    more than ``INSIDE_MARGIN`` pixels from every edge line; ``tiles`` then leaves them out (the
-    soft search's pass 2 wants only the pixels *outside* a face, and a large face's interior is
-    most of its dilated box).
     """
     n = len(boxes.j0)
     big = torch.nonzero(boxes.sizes() > small_box).squeeze(1)
@@ -157,51 +151,20 @@ def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float
     A = torch.stack([planes[k].index_select(0, big) for k in (0, 3, 6)], 1)
     Bp = torch.stack([planes[k].index_select(0, big) for k in (1, 4, 7)], 1)
     Cp = torch.stack([planes[k].index_select(0, big) for k in (2, 5, 8)], 1)
-    norm = torch.sqrt(A * A + Bp * Bp)
+    Cp = Cp + (radius + 1e-5) * torch.sqrt(A * A + Bp * Bp)
     safe = torch.where(A == 0, torch.ones_like(A), A)
+    slope, icpt = -Bp / safe, -Cp / safe
     inf = torch.full_like(A, float("inf"))
     zero = torch.zeros_like(A)
-    slope = -Bp / safe
-
-    def table(offset: float) -> torch.Tensor:
-        """``[Fbig, 12]``: per edge, the left-bound slope / intercept, then the right-bound ones."""
-        icpt = -(Cp + offset * norm) / safe
-        return torch.cat([torch.where(A > 0, slope, zero), torch.where(A > 0, icpt, -inf),
-                          torch.where(A < 0, slope, zero), torch.where(A < 0, icpt, inf)], 1)
-
-    outer = table(radius + 1e-5)
-    margin = INSIDE_MARGIN * 2.0 / W
-    inner = table(-margin) if skip_inside else None
-    # the hole's test: lambda_k - margin |grad lambda_k| >= 0 for k = 0, 1, 2 (columns A, B, C)
-    test = torch.cat([A, Bp, Cp - margin * norm], 1) if skip_inside else None
-
-    def bounds(tab, r, yc):
-        r = tab.index_select(0, r)
-        return (r[:, 0:3] * yc + r[:, 3:6]).amax(1), (r[:, 6:9] * yc + r[:, 9:12]).amin(1)
+    rowtab = torch.cat([torch.where(A > 0, slope, zero), torch.where(A > 0, icpt, -inf),
+                        torch.where(A < 0, slope, zero), torch.where(A < 0, icpt, inf)], 1)  # [Fbig, 12]
 
     def span(p, yy):
-        rows = row_of.index_select(0, p)
+        r = rowtab.index_select(0, row_of.index_select(0, p))
         yc = yy[:, None]
-        j0, j1 = tiles.columns(*bounds(outer, rows, yc), W)
-        if inner is None:
-            return j0, j1
-        k0, k1 = tiles.columns(*bounds(inner, rows, yc), W)
-        # horizontal edges do not bound x, and near-horizontal ones bound it with rounding: the
-        # hole is kept only where both of its end pixels pass the test (lambda is linear in x,
-        # so every pixel between them passes too)
-        t = test.index_select(0, rows)
-        ok = torch.ones_like(k0, dtype=torch.bool)
-        for k in (k0, k1):
-            x = (2 * k + 1).to(yy.dtype)[:, None] / W - 1
-            ok &= (t[:, 0:3] * x + t[:, 3:6] * yc + t[:, 6:9]).amin(1) >= 0
-        return j0, j1, k0, torch.where(ok, k1, k0 - 1)
+        return tiles.columns((r[:, 0:3] * yc + r[:, 3:6]).amax(1), (r[:, 6:9] * yc + r[:, 9:12]).amin(1), W)
 
     return span
-
-
-# skip_inside: columns at least this many pixels inside every edge line are surely inside the face
-# (far above the rounding of the barycentric planes)
-INSIDE_MARGIN = 1e-2
 
 
 def face_boxes(cols: torch.Tensor, image: torch.Tensor, radius: float, H: int, W: int) -> tiles.PixelBoxes:

@@ -161,8 +161,7 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
     if hidden_below is not None:
         hidden = _hidden_faces(faces, boxes, hidden_below, chunks["H"], W)
         boxes = tiles.PixelBoxes(boxes.image, boxes.j0, torch.where(hidden, boxes.j0 - 1, boxes.j1), boxes.i0, boxes.i1)
-    # pass 2 keeps only pixels outside the face (unless keep_inside): skip its interior columns
-    span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W, skip_inside=not keep_inside)
+    span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W)
     out = []
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
         cand = tiles.concat(parts)

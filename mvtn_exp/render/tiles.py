@@ -106,8 +106,7 @@ def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype
 
     span: optional ``span(prim [R], y [R]) -> (j0, j1)``: per box row at NDC height y, the
     inclusive pixel columns the primitive can reach there (see ``columns``); it trims large boxes
-    to the primitive's own shape. A span may return ``(j0, j1, k0, k1)``: then the columns
-    ``k0..k1`` are left out of the row (a hole; empty when k1 < k0). Boxes of at most ``small_box`` pixels skip it and are enumerated
+    to the primitive's own shape. Boxes of at most ``small_box`` pixels skip it and are enumerated
     whole: there the row pass would cost more than the candidates it saves.
     owner: maps box index -> primitive index (tile-clipped boxes); identity when None.
     """
@@ -148,19 +147,13 @@ def _enumerate_rows(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, 
     b = sel.index_select(0, rown)
     p = b if owner is None else owner.index_select(0, b)
     y = 1 - (2 * i + 1).to(dtype) / H
-    cols = span(p, y)
-    j0 = torch.maximum(boxes.j0.index_select(0, b), cols[0])
-    j1 = torch.minimum(boxes.j1.index_select(0, b), cols[1])
-    row_pix = (boxes.image.index_select(0, b) * H + i) * W
-    if len(cols) == 4:  # two runs per row around the hole k0..k1: j0..k0-1 and k1+1..j1
-        k0 = torch.minimum(torch.maximum(cols[2], j0), j1 + 1)
-        k1 = torch.maximum(torch.minimum(cols[3], j1), k0 - 1)
-        j0, j1 = torch.cat([j0, k1 + 1]), torch.cat([k0 - 1, j1])
-        row_pix, y, p = row_pix.repeat(2), y.repeat(2), p.repeat(2)
+    j0, j1 = span(p, y)
+    j0 = torch.maximum(boxes.j0.index_select(0, b), j0)
+    j1 = torch.minimum(boxes.j1.index_select(0, b), j1)
     n = (j1 - j0 + 1).clamp(min=0)
     own = torch.repeat_interleave(torch.arange(len(n), device=dev), n)
     j = (j0 - (torch.cumsum(n, 0) - n)).index_select(0, own) + torch.arange(len(own), device=dev)
-    pix = row_pix.index_select(0, own) + j
+    pix = ((boxes.image.index_select(0, b) * H + i) * W).index_select(0, own) + j
     return Candidates(p.index_select(0, own), pix, (2 * j + 1).to(dtype) / W - 1, y.index_select(0, own))
 
 
