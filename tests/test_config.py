@@ -48,7 +48,8 @@ def test_every_experiment_composes(name):
     assert cfg.renderer.image_size == cfg.image_size
     if name.startswith("synthetic_views"):  # the README's view-dependent comparison: same setup both sides
         assert cfg.dataset.name == "synthetic_views" and cfg.augment.rotate == "so3" and cfg.renderer.mode == "hard"
-        assert cfg.optim.selector_grad == "smoothed" and cfg.selector.name == (
+        assert cfg.optim.selector_grad == "smoothed" and cfg.optim.selector_loss == "centered_logit"
+        assert cfg.selector.name == (
             "mvtn_poi" if name.endswith("learned") else "spherical")
     elif name.startswith(("synthetic", "tradeoff")):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
