@@ -32,6 +32,7 @@ MVNET_NAMES = tuple(MULTIVIEW)
 TASKS = ("classification",)
 WARMUP_VIEWS = ("u0", "random")
 SELECTOR_GRADIENTS = ("autograd", "smoothed")  # how G gets its gradient (engine/view_gradient.py)
+BN_RECALIBRATE_SCOPES = ("all", "eval")  # what the re-estimated BatchNorm statistics serve (engine/precise_bn.py)
 SELECTOR_LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
 OPTIMIZERS = ("adamw",)
 SCHEDULES = ("cosine", "step")
@@ -253,7 +254,9 @@ class OptimConfig:
     lower loss turns round (``selectors/polarity.py``); 0 (default): off. ``bn_recalibrate``: before
     each validation, C's BatchNorm statistics are re-estimated over this many training batches
     rendered as validation renders them (``engine/precise_bn.py``); 0 (default, the paper's): the
-    running averages of training. ``selector_loss``: what G's smoothed gradient minimises: ``task``
+    running averages of training; ``bn_recalibrate_scope``: ``all`` (training goes on from the
+    re-estimated statistics) or ``eval`` (they serve validation, the checkpoints and the test;
+    training keeps its own, so it is bit-identical to a run without re-estimation). ``selector_loss``: what G's smoothed gradient minimises: ``task``
     (the paper's: C's own loss) or ``centered_logit`` (``mean_c z_c - z_y``: the task loss without
     its label-free confidence term ``logsumexp z - mean z``, which pulls G to views where C's output
     is flat while C is still at chance; ``tasks/classification.py``); needs ``selector_grad=smoothed``."""
@@ -276,6 +279,7 @@ class OptimConfig:
     flip_explore: float = 0.0
     flip_epochs: int = 10
     bn_recalibrate: int = 0
+    bn_recalibrate_scope: str = "all"
 
     def validate(self) -> "OptimConfig":
         one_of("optim", self.name, OPTIMIZERS)
@@ -300,6 +304,7 @@ class OptimConfig:
             raise ValueError(f"optim.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
         at_least("optim.flip_epochs", self.flip_epochs, 1)
         at_least("optim.bn_recalibrate", self.bn_recalibrate, 0)
+        one_of("optim.bn_recalibrate_scope", self.bn_recalibrate_scope, BN_RECALIBRATE_SCOPES)
         return self
 
 

@@ -100,6 +100,7 @@ def test_top_level_keys_reach_the_parts():
     (["optim.flip_explore=0.5", "optim.flip_epochs=0"], "optim.flip_epochs"),
     (["selector=spherical", "optim.flip_explore=0.5"], "needs a learned selector, got selector=spherical"),
     (["optim.bn_recalibrate=-1"], "optim.bn_recalibrate"),
+    (["optim.bn_recalibrate_scope=test"], "optim.bn_recalibrate_scope"),
     (["-m", "views=1,0"], "views=0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),
 ])

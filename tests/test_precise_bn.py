@@ -1,11 +1,12 @@
 """BatchNorm re-estimation before validation (engine/precise_bn.py): the plain average, nothing else moves."""
 from __future__ import annotations
 
+import pytest
 import torch
 from torch import nn
 
 from mvtn_exp.engine import checkpoint, train
-from mvtn_exp.engine.precise_bn import recalibrate
+from mvtn_exp.engine.precise_bn import recalibrate, restore, running_statistics
 
 from test_train_e2e import tiny
 
@@ -58,3 +59,54 @@ def test_only_the_batchnorm_statistics_change_in_a_run(tmp_path):
     stats = [k for k in s0["model"] if k.startswith("mvnet.") and k.endswith("running_mean")]
     assert stats and all(not torch.equal(s0["model"][k], s2["model"][k]) for k in stats)
     assert torch.equal(s0["rng"]["torch"], s2["rng"]["torch"])
+
+
+def test_statistics_round_trip_and_refuse_foreign_layers():
+    torch.manual_seed(0)
+    model = _Toy().train()
+    model.mvnet(torch.randn(5, 3, 6, 6))
+    saved = running_statistics(model)
+    assert sorted(saved) == ["mvnet.1.num_batches_tracked", "mvnet.1.running_mean", "mvnet.1.running_var"]
+    recalibrate(model, [{"x": torch.randn(5, 3, 6, 6) * 3 + 2}], 1)
+    assert not torch.equal(model.mvnet[1].running_mean, saved["mvnet.1.running_mean"])
+    restore(model, saved)
+    assert all(torch.equal(model.state_dict()[k], v) for k, v in saved.items())
+    with pytest.raises(KeyError, match="mvnet.9.running_mean"):
+        restore(model, {"mvnet.9.running_mean": torch.zeros(4)})
+
+
+SMOOTHED = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1}
+
+
+def test_eval_scope_leaves_a_learned_g_training_as_without(tmp_path):
+    """A learned G on the smoothed gradient probes C in eval mode, so with scope=all the
+    re-estimated statistics change G's steps; with scope=eval the whole training (losses, G and
+    C's weights, training's running statistics, RNG) is bit-identical to a run without
+    re-estimation, while the saved model carries the re-estimated statistics."""
+    cache = str(tmp_path / "cache")
+    runs = {}
+    for name, extra in (("none", {}), ("all", {"optim.bn_recalibrate": 2}),
+                        ("eval", {"optim.bn_recalibrate": 2, "optim.bn_recalibrate_scope": "eval"})):
+        m = train(tiny(cache, epochs=2, **SMOOTHED, **extra), tmp_path / name)
+        runs[name] = (m, checkpoint.load(tmp_path / name / "last.pt"))
+    (m0, s0), (ma, sa), (me, se) = runs["none"], runs["all"], runs["eval"]
+    losses = {k: [h["train_loss"] for h in m["history"]] for k, (m, _) in runs.items()}
+    assert losses["eval"] == losses["none"] and losses["all"] != losses["none"]
+    stats = set(se["train_bn"])
+    weights = [k for k in s0["model"] if k not in stats and s0["model"][k].is_floating_point()]
+    assert all(torch.equal(s0["model"][k], se["model"][k]) for k in weights)
+    assert any(not torch.equal(s0["model"][k], sa["model"][k]) for k in weights if k.startswith("selector."))
+    assert all(torch.equal(s0["model"][k], se["train_bn"][k]) for k in stats)
+    means = [k for k in stats if k.endswith("running_mean")]
+    assert means and all(not torch.equal(se["model"][k], se["train_bn"][k]) for k in means)
+    assert "train_bn" not in sa and torch.equal(s0["rng"]["torch"], se["rng"]["torch"])
+
+
+def test_eval_scope_resumes_exactly(tmp_path):
+    cache = str(tmp_path / "cache")
+    kw = {**SMOOTHED, "optim.bn_recalibrate": 2, "optim.bn_recalibrate_scope": "eval"}
+    full = train(tiny(cache, epochs=2, **kw), tmp_path / "full")
+    train(tiny(cache, epochs=1, **kw), tmp_path / "a")
+    resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **kw), tmp_path / "b")
+    assert [h["train_loss"] for h in resumed["history"]] == [h["train_loss"] for h in full["history"]]
+    assert resumed["confusion_matrix"] == full["confusion_matrix"]

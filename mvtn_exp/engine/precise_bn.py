@@ -13,6 +13,13 @@ are reset and set to the plain average over the first N batches of the epoch's t
 rendered as validation renders them (the whole model in eval mode but C's BatchNorm layers, no
 augmentation, no gradients). G, C's weights and every random stream are untouched; the epoch's
 checkpoint (and so the test) carries the re-estimated statistics.
+
+``optim.bn_recalibrate_scope``: ``all`` lets training go on from the re-estimated statistics,
+which changes a learned G's trajectory where G's smoothed probes run C in eval mode (measured:
+three runs on ``synthetic_views`` lost the detail they kept without it); ``eval`` keeps them for
+validation, the checkpoints' ``model`` and the test only, and puts training's own running
+averages back after each validation (``running_statistics`` / ``restore``; checkpoints carry them
+as ``train_bn`` for an exact resume), so training is bit-identical to a run without re-estimation.
 """
 from __future__ import annotations
 
@@ -54,3 +61,26 @@ def recalibrate(model, batches: Iterable[dict], n: int) -> int:
         for m, flag in flags:
             m.training = flag
     return used
+
+
+def running_statistics(model: nn.Module) -> dict[str, torch.Tensor]:
+    """Copies of the running statistics of every BatchNorm layer of ``model.mvnet``, keyed as in
+    ``model.state_dict()`` (``mvnet.<layer>.running_mean`` / ``running_var`` / ``num_batches_tracked``)."""
+    layers = {id(m) for m in batchnorms(model.mvnet)}
+    out = {}
+    for name, m in model.mvnet.named_modules():
+        if id(m) in layers:
+            for key in ("running_mean", "running_var", "num_batches_tracked"):
+                out[f"mvnet.{name}.{key}"] = getattr(m, key).detach().clone()
+    return out
+
+
+def restore(model: nn.Module, stats: dict[str, torch.Tensor]) -> None:
+    """Put ``running_statistics`` back in place (a key that ``model`` lacks is an error)."""
+    buffers = dict(model.named_buffers())
+    missing = sorted(set(stats) - set(buffers))
+    if missing:
+        raise KeyError(f"BatchNorm statistics for layers this model does not have: {missing[:3]}")
+    with torch.no_grad():
+        for key, value in stats.items():
+            buffers[key].copy_(value)

@@ -288,6 +288,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
 
 def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict) -> None:
     model.load_state_dict(state["model"])
+    if "train_bn" in state:  # bn_recalibrate_scope=eval: training goes on from its own statistics
+        precise_bn.restore(model, state["train_bn"])
     opt.load_state_dict(state["optimizer"])
     sched.load_state_dict(state["scheduler"])
     start = int(state["epoch"])  # epochs completed = the 0-based index of the next one
@@ -382,7 +384,10 @@ def train(cfg, run_dir, build_model=None) -> dict:
                     turned = model.polarity.decide()
                     if turned:
                         say(run_dir, f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
+                train_bn = None  # bn_recalibrate_scope=eval: training's own statistics, put back after saving
                 if cfg.optim.bn_recalibrate:
+                    if cfg.optim.bn_recalibrate_scope == "eval":
+                        train_bn = precise_bn.running_statistics(model)
                     precise_bn.recalibrate(model, train_loader(cfg, datasets["train"], epoch), cfg.optim.bn_recalibrate)
                 val = classification.evaluate(model, loaders["val"], len(classes), desc="val",
                                               progress=cfg.logger.progress)
@@ -409,9 +414,13 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 if improved:
                     best_acc, best_epoch = val["acc"], epoch
                 state = payload(epoch)
+                if train_bn is not None:
+                    state["train_bn"] = train_bn
                 if improved:
                     checkpoint.save_atomic(run_dir / "best.pt", state)
                 checkpoint.save_atomic(run_dir / "last.pt", state)
+                if train_bn is not None:
+                    precise_bn.restore(model, train_bn)
                 say(run_dir, f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
                       f"val acc {val['acc']:.3f}{' (best)' if improved else ''} | "
                       f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
