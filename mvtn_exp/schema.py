@@ -254,9 +254,9 @@ class OptimConfig:
     lower loss turns round (``selectors/polarity.py``); 0 (default): off. ``bn_recalibrate``: before
     each validation, C's BatchNorm statistics are re-estimated over this many training batches
     rendered as validation renders them (``engine/precise_bn.py``); 0 (default, the paper's): the
-    running averages of training; ``bn_recalibrate_scope``: ``all`` (training goes on from the
-    re-estimated statistics) or ``eval`` (they serve validation, the checkpoints and the test;
-    training keeps its own, so it is bit-identical to a run without re-estimation). ``selector_loss``: what G's smoothed gradient minimises: ``task``
+    running averages of training; ``bn_recalibrate_scope``: ``eval`` (default: they serve
+    validation, the checkpoints and the test; training keeps its own, so it is bit-identical to a
+    run without re-estimation) or ``all`` (training goes on from the re-estimated statistics). ``selector_loss``: what G's smoothed gradient minimises: ``task``
     (the paper's: C's own loss) or ``centered_logit`` (``mean_c z_c - z_y``: the task loss without
     its label-free confidence term ``logsumexp z - mean z``, which pulls G to views where C's output
     is flat while C is still at chance; ``tasks/classification.py``); needs ``selector_grad=smoothed``."""
@@ -279,7 +279,7 @@ class OptimConfig:
     flip_explore: float = 0.0
     flip_epochs: int = 10
     bn_recalibrate: int = 0
-    bn_recalibrate_scope: str = "all"
+    bn_recalibrate_scope: str = "eval"
 
     def validate(self) -> "OptimConfig":
         one_of("optim", self.name, OPTIMIZERS)

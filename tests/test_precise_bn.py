@@ -85,7 +85,7 @@ def test_eval_scope_leaves_a_learned_g_training_as_without(tmp_path):
     re-estimation, while the saved model carries the re-estimated statistics."""
     cache = str(tmp_path / "cache")
     runs = {}
-    for name, extra in (("none", {}), ("all", {"optim.bn_recalibrate": 2}),
+    for name, extra in (("none", {}), ("all", {"optim.bn_recalibrate": 2, "optim.bn_recalibrate_scope": "all"}),
                         ("eval", {"optim.bn_recalibrate": 2, "optim.bn_recalibrate_scope": "eval"})):
         m = train(tiny(cache, epochs=2, **SMOOTHED, **extra), tmp_path / name)
         runs[name] = (m, checkpoint.load(tmp_path / name / "last.pt"))
