@@ -248,7 +248,9 @@ class OptimConfig:
     ``selector_grad``: how G's gradient is got: ``autograd`` (the paper's: through the
     differentiable renderer) or ``smoothed`` (the gradient of the task loss smoothed over the views
     by a Gaussian of ``smoothed_sigma`` degrees, estimated from ``smoothed_pairs`` antithetic pairs
-    of perturbed renders per step; the renderer is not differentiated: ``engine/view_gradient.py``).
+    of perturbed renders per step; the renderer is not differentiated: ``engine/view_gradient.py``);
+    ``smoothed_every``: the estimate (and G's step) only every this many training steps; the steps
+    between train C alone (a speed knob: G's probes cost 2-3 x C's step).
     ``flip_explore``: for the first ``flip_epochs`` epochs each training view of a learned G is
     rendered from its antipode with this probability, and a view whose flipped renders had the
     lower loss turns round (``selectors/polarity.py``); 0 (default): off. ``bn_recalibrate``: before
@@ -275,6 +277,7 @@ class OptimConfig:
     selector_grad: str = "autograd"
     smoothed_pairs: int = 2
     smoothed_sigma: float = 10.0
+    smoothed_every: int = 1
     selector_loss: str = "task"
     flip_explore: float = 0.0
     flip_epochs: int = 10
@@ -296,6 +299,7 @@ class OptimConfig:
         one_of("optim.selector_grad", self.selector_grad, SELECTOR_GRADIENTS)
         at_least("optim.smoothed_pairs", self.smoothed_pairs, 1)
         at_least("optim.smoothed_sigma", self.smoothed_sigma, 0.0, strict=True)
+        at_least("optim.smoothed_every", self.smoothed_every, 1)
         one_of("optim.selector_loss", self.selector_loss, SELECTOR_LOSSES)
         if self.selector_loss != "task" and self.selector_grad != "smoothed":
             raise ValueError(f"optim.selector_loss={self.selector_loss}: G's own loss is estimated from perturbed "

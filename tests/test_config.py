@@ -93,6 +93,7 @@ def test_top_level_keys_reach_the_parts():
     (["optim.selector_grad=finite"], "optim.selector_grad"),
     (["optim.smoothed_pairs=0"], "optim.smoothed_pairs"),
     (["optim.smoothed_sigma=0"], "optim.smoothed_sigma"),
+    (["optim.smoothed_every=0"], "optim.smoothed_every"),
     (["optim.selector_grad=smoothed", "selector.learn_distance=true"], "needs optim.selector_grad=autograd"),
     (["optim.selector_loss=entropy"], "optim.selector_loss"),
     (["optim.selector_loss=centered_logit"], "needs optim.selector_grad=smoothed"),

@@ -123,6 +123,29 @@ def test_selector_loss_changes_g_only(tmp_path):
     assert torch.equal(runs["task"]["rng"]["torch"], runs["centered_logit"]["rng"]["torch"])
 
 
+def test_smoothed_every_probes_and_steps_g_only_on_those_steps(tmp_path, monkeypatch):
+    """optim.smoothed_every=5 over 12 steps (2 epochs of 6): the estimate runs at steps 0, 5 and
+    10, and AdamW steps G exactly there (G has no gradient in between); C steps every time."""
+    from mvtn_exp.engine import view_gradient
+
+    calls = []
+    real = view_gradient.smoothed_view_gradient
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(view_gradient, "smoothed_view_gradient", counting)
+    kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1, "optim.smoothed_every": 5}
+    m = train(tiny(str(tmp_path / "cache"), **kw), tmp_path / "run")
+    assert m["steps"] == 12 and len(calls) == 3
+    state = checkpoint.load(tmp_path / "run" / "last.pt")["optimizer"]
+    groups = {g["name"]: g["params"] for g in state["param_groups"]}
+    g_steps = {int(state["state"][i]["step"]) for i in groups["selector"] if i in state["state"]}
+    c_steps = {int(state["state"][i]["step"]) for i in groups["mvnet"] if i in state["state"]}
+    assert g_steps == {3} and c_steps == {12}
+
+
 def test_smoothed_resume_is_exact(tmp_path):
     cache = str(tmp_path / "cache")
     kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1}

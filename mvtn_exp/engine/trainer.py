@@ -246,7 +246,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
         if flips is not None:
             flips.record(per_shape_loss(logits.detach(), labels), flip_mask)
         objective = loss
-        if smoothed:  # G's gradient from the loss at perturbed views (view_gradient.py), charged to G
+        if smoothed and step % cfg.optim.smoothed_every == 0:  # G's gradient from the loss at perturbed views
+            # (view_gradient.py), charged to G; on the other steps G gets no gradient and AdamW leaves it
             with timer.stage("selector"):
                 g = view_gradient.smoothed_view_gradient(
                     view_gradient.model_render_loss(model, batch, labels, selector_loss), views,
