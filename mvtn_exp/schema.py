@@ -258,10 +258,11 @@ class OptimConfig:
     rendered as validation renders them (``engine/precise_bn.py``); 0 (default, the paper's): the
     running averages of training; ``bn_recalibrate_scope``: ``eval`` (default: they serve
     validation, the checkpoints and the test; training keeps its own, so it is bit-identical to a
-    run without re-estimation) or ``all`` (training goes on from the re-estimated statistics). ``selector_loss``: what G's smoothed gradient minimises: ``task``
-    (the paper's: C's own loss) or ``centered_logit`` (``mean_c z_c - z_y``: the task loss without
-    its label-free confidence term ``logsumexp z - mean z``, which pulls G to views where C's output
-    is flat while C is still at chance; ``tasks/classification.py``); needs ``selector_grad=smoothed``."""
+    run without re-estimation) or ``all`` (training goes on from the re-estimated statistics).
+    ``selector_loss``: what G's smoothed gradient minimises: ``task`` (the paper's: C's own loss)
+    or ``centered_logit`` (``mean_c z_c - z_y``: the task loss without its label-free confidence
+    term ``logsumexp z - mean z``, which pulls G to views where C's output is flat while C is still
+    at chance; ``tasks/classification.py``); needs ``selector_grad=smoothed``."""
 
     name: str = "adamw"
     lr: float = 1e-3
