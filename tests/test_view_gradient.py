@@ -166,7 +166,7 @@ def test_view_landscape_reads_a_synthetic_views_run(tmp_path, capsys):
     assert (tmp_path / "run" / "detail_angles.png").stat().st_size > 1000 and 0 <= m["test_detail_angle_median"] <= 180
     rows = view_landscape.landscape(tmp_path / "run", thetas=(0, 30), shapes=6, pairs=1, sigma=10.0)
     assert [r["theta"] for r in rows] == [0, 30] and "autograd_cos" not in rows[0]
-    for key in ("loss", "acc", "autograd_cos", "autograd_towards", "smoothed_cos", "smoothed_towards"):
+    for key in ("loss", "centered", "acc", "autograd_cos", "autograd_towards", "smoothed_cos", "smoothed_towards"):
         assert torch.isfinite(torch.tensor(rows[1][key])), key
     assert -1 <= rows[1]["smoothed_cos"] <= 1 and 0 <= rows[1]["autograd_towards"] <= 1
     # a run on another dataset, and no run at all: one line, exit 2

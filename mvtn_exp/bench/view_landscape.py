@@ -11,7 +11,8 @@ how well a descent step on G's views would turn the camera towards the axis, for
 
 as the mean cosine between the camera's move and the direction to the axis, and the share of
 shapes moved towards it (0.5: no information). The moves are what a step in (azimuth, elevation)
-does to the camera position, the same map for both estimates.
+does to the camera position, the same map for both estimates. Each row also gives the mean of G's
+other loss, the centered logit (``optim.selector_loss=centered_logit``).
 """
 from __future__ import annotations
 
@@ -86,7 +87,9 @@ def landscape(run_dir, thetas=(0, 20, 40, 60), shapes: int = 96, pairs: int = 6,
                                                       view_gradient.noise_generator(seed, int(theta)))
         smooth = camera_move(a, e, ga[:, 0].double().numpy(), ge[:, 0].double().numpy())
         prob = torch.softmax(logits.detach().double(), 1)
-        row = {"theta": theta, "loss": float(loss.detach().mean()), "acc": float((logits.argmax(1) == labels).float().mean()),
+        row = {"theta": theta, "loss": float(loss.detach().mean()),
+               "centered": float(classification.centered_logit_loss(logits.detach(), labels).mean()),
+               "acc": float((logits.argmax(1) == labels).float().mean()),
                "p_true": float(prob.gather(1, labels[:, None]).mean()),
                "entropy": float(-(prob * prob.clamp_min(1e-300).log()).sum(1).mean())}
         if 0 < theta < 180:  # on the axis (or opposite it) there is no direction towards it
@@ -116,10 +119,11 @@ def main(argv=None) -> None:
     if args.json:
         print(json.dumps(rows))
         return
-    print(f"| theta (deg from the cup axis) | loss | acc | p(true class) | entropy | autograd: cosine / towards | "
-          f"smoothed ({args.pairs} pairs, sigma {args.sigma:g}): cosine / towards |\n|---|---|---|---|---|---|---|")
+    print(f"| theta (deg from the cup axis) | loss | centered logit | acc | p(true class) | entropy | autograd: cosine / towards | "
+          f"smoothed ({args.pairs} pairs, sigma {args.sigma:g}): cosine / towards |\n|---|---|---|---|---|---|---|---|")
     for r in rows:
-        cells = [f"{r['theta']:g}", f"{r['loss']:.3f}", f"{r['acc']:.2f}", f"{r['p_true']:.3f}", f"{r['entropy']:.3f}"]
+        cells = [f"{r['theta']:g}", f"{r['loss']:.3f}", f"{r['centered']:.3f}", f"{r['acc']:.2f}", f"{r['p_true']:.3f}",
+                 f"{r['entropy']:.3f}"]
         for k in ("autograd", "smoothed"):
             cells.append(f"{r[k + '_cos']:.2f} / {r[k + '_towards']:.0%}" if f"{k}_cos" in r else "-")
         print("| " + " | ".join(cells) + " |")
