@@ -146,6 +146,9 @@ class SelectorConfig:
     seed), at 17.5 vs 26.0 s per epoch. The paper setups read all points.
     ``regressor`` (learned MVTN selectors): ``compact`` (b -> b -> b -> 5M -> 2M, the default) or
     ``official`` (the official code's MLP: one more 2M -> 2M layer, dropout 0.5; the paper setups).
+    ``poi_gain``: how far mvtn_poi's point of interest pulls its cameras from u0; ``poi_cache``: how
+    many shapes' rotation-invariant point descriptors mvtn_poi keeps for later steps (0: computed
+    at every step; 4096 shapes x 256 points: about 46 MB; ``selectors/invariant_cache.py``).
     """
 
     name: str = "mvtn_spherical"
@@ -159,6 +162,7 @@ class SelectorConfig:
     init_std: Optional[float] = None
     num_points: Optional[int] = 256
     poi_gain: float = 8.0
+    poi_cache: int = 4096
     regressor: str = "compact"
 
     @property
@@ -178,6 +182,7 @@ class SelectorConfig:
         if self.num_points is not None:
             at_least("selector.num_points", self.num_points, 1)
         at_least("selector.poi_gain", self.poi_gain, 0.0, strict=True)
+        at_least("selector.poi_cache", self.poi_cache, 0)
         if self.learn_distance:
             at_least("selector.distance_bound", self.distance_bound, 0.0, strict=True)
         return self

@@ -123,9 +123,8 @@ def test_selector_loss_changes_g_only(tmp_path):
     assert torch.equal(runs["task"]["rng"]["torch"], runs["centered_logit"]["rng"]["torch"])
 
 
-def test_smoothed_every_probes_and_steps_g_only_on_those_steps(tmp_path, monkeypatch):
-    """optim.smoothed_every=5 over 12 steps (2 epochs of 6): the estimate runs at steps 0, 5 and
-    10, and AdamW steps G exactly there (G has no gradient in between); C steps every time."""
+def count_probes(monkeypatch) -> list:
+    """Every later call of ``view_gradient.smoothed_view_gradient`` appends to the returned list."""
     from mvtn_exp.engine import view_gradient
 
     calls = []
@@ -136,6 +135,13 @@ def test_smoothed_every_probes_and_steps_g_only_on_those_steps(tmp_path, monkeyp
         return real(*a, **k)
 
     monkeypatch.setattr(view_gradient, "smoothed_view_gradient", counting)
+    return calls
+
+
+def test_smoothed_every_probes_and_steps_g_only_on_those_steps(tmp_path, monkeypatch):
+    """optim.smoothed_every=5 over 12 steps (2 epochs of 6): the estimate runs at steps 0, 5 and
+    10, and AdamW steps G exactly there (G has no gradient in between); C steps every time."""
+    calls = count_probes(monkeypatch)
     kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1, "optim.smoothed_every": 5}
     m = train(tiny(str(tmp_path / "cache"), **kw), tmp_path / "run")
     assert m["steps"] == 12 and len(calls) == 3
@@ -144,6 +150,21 @@ def test_smoothed_every_probes_and_steps_g_only_on_those_steps(tmp_path, monkeyp
     g_steps = {int(state["state"][i]["step"]) for i in groups["selector"] if i in state["state"]}
     c_steps = {int(state["state"][i]["step"]) for i in groups["mvnet"] if i in state["state"]}
     assert g_steps == {3} and c_steps == {12}
+
+
+def test_no_probes_once_g_is_frozen(tmp_path, monkeypatch):
+    """optim.selector_epochs=1 over 2 epochs of 6 steps: the smoothed estimate runs in epoch 1 only
+    (G's learning rate is 0 afterwards), G's AdamW state stops at 6 steps while C's reaches 12, and
+    epoch 2 records no gradient for G."""
+    calls = count_probes(monkeypatch)
+    kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1, "optim.selector_epochs": 1}
+    m = train(tiny(str(tmp_path / "cache"), **kw), tmp_path / "run")
+    assert m["steps"] == 12 and len(calls) == 6
+    assert m["history"][0]["grad_norm_selector"] > 0 and m["history"][1]["grad_norm_selector"] == 0.0
+    state = checkpoint.load(tmp_path / "run" / "last.pt")["optimizer"]
+    groups = {g["name"]: g["params"] for g in state["param_groups"]}
+    assert {int(state["state"][i]["step"]) for i in groups["selector"] if i in state["state"]} == {6}
+    assert {int(state["state"][i]["step"]) for i in groups["mvnet"] if i in state["state"]} == {12}
 
 
 def test_smoothed_resume_is_exact(tmp_path):

@@ -122,6 +122,11 @@ def make_optimizer(cfg: TrainConfig, model: MVTN):
     return opt, sched
 
 
+def selector_lr(opt) -> float | None:
+    """G's learning rate in ``opt`` now (None: no G group)."""
+    return next((g["lr"] for g in opt.param_groups if g["name"] == "selector"), None)
+
+
 def _grads_finite(params) -> bool:
     return all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None)
 
@@ -217,7 +222,10 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     all_params = groups["mvnet"] + groups["selector"]
     acc = _Epoch()
     warm = bool(groups["selector"]) and epoch < cfg.optim.selector_warmup_epochs  # G frozen, C alone
-    smoothed = bool(groups["selector"]) and not warm and cfg.optim.selector_grad == "smoothed"
+    # G's learning rate is 0 (optim.selector_epochs reached, or lr_selector=0): C trains on G's
+    # views, and neither G's gradient nor the smoothed probes are computed (G's weights are the same)
+    frozen = bool(groups["selector"]) and not warm and selector_lr(opt) == 0.0
+    smoothed = bool(groups["selector"]) and not warm and not frozen and cfg.optim.selector_grad == "smoothed"
     flips = model.polarity if exploring_flips(model, cfg, epoch) else None
     per_shape_loss = classification.loss_fn(cfg.task, reduction="none")
     selector_loss = classification.selector_loss_fn(cfg.optim.selector_loss, cfg.task)
@@ -231,7 +239,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
         if batch is None:
             break
         labels = batch["labels"].to(model.device)
-        with timer.stage("selector"):
+        with timer.stage("selector"), torch.set_grad_enabled(not frozen):
             views = warmup_views(model, batch, cfg) if warm else model.select(batch)
             if flips is not None:  # some views from their antipodes (selectors/polarity.py)
                 views, flip_mask = flips.explore(views, cfg.optim.flip_explore, flip_generator(cfg.seed, step))

@@ -26,10 +26,12 @@ Descriptors per point ``p`` (centred at the cloud's mean), for each ``k`` in ``k
 ``k`` nearest neighbours and their centroid ``c``: the mean neighbour distance, ``(c - p) . p / |p|``
 (positive in concavities that open away from the centre, such as the floor of a cup),
 ``|c - p|``, and the two smallest PCA eigenvalue ratios of the neighbourhood (flatness); plus
-``|p|``. All are divided by the cloud's RMS radius.
+``|p|``. All are divided by the cloud's RMS radius. Being rotation invariant, they are computed
+once per shape and looked up at later steps (``cache`` shapes kept; ``invariant_cache.py``).
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import Sequence
 
 import torch
@@ -37,6 +39,7 @@ from torch import Tensor, nn
 
 from mvtn_exp.render import layouts
 from mvtn_exp.selectors.fixed import ViewSelector, Views
+from mvtn_exp.selectors.invariant_cache import InvariantCache
 
 
 def invariant_descriptors(points: Tensor, ks: Sequence[int] = (16, 48)) -> Tensor:
@@ -77,18 +80,20 @@ class PointOfInterestSelector(ViewSelector):
 
     views: M; hidden: MLP width; ks: neighbourhood sizes of the descriptors; gain: how far the
     point of interest pulls the camera from u0 (the shapes lie in the unit sphere: with gain 8 a
-    point 0.25 from the centre outweighs u0 twice); distance: camera distance.
+    point 0.25 from the centre outweighs u0 twice); distance: camera distance; cache: how many
+    shapes' descriptors are kept for later steps (0: computed at every call).
     """
 
     learned = True
 
     def __init__(self, views: int, hidden: int = 64, ks: Sequence[int] = (16, 48), gain: float = 8.0,
-                 distance: float = 2.2, sphere: str = "equal_area", **_ignored) -> None:
+                 distance: float = 2.2, sphere: str = "equal_area", cache: int = 0, **_ignored) -> None:
         super().__init__(views)
         if not gain > 0:
             raise ValueError(f"PointOfInterestSelector: gain must be > 0, got {gain!r}")
         M = self.views
         self.ks, self.gain, self.distance = tuple(int(k) for k in ks), float(gain), float(distance)
+        self.descriptors = InvariantCache(partial(invariant_descriptors, ks=self.ks), cache)
         azim0, elev0, _ = layouts.spherical(M, 1, distance=distance, sphere=sphere)
         self.register_buffer("azim0", azim0[0], persistent=False)
         self.register_buffer("elev0", elev0[0], persistent=False)
@@ -110,7 +115,7 @@ class PointOfInterestSelector(ViewSelector):
         """``[B, N, 3]`` -> (centred points ``[B, N, 3]``, softmax weights over the points ``[B, N, M]``)."""
         p = points - points.mean(1, keepdim=True)
         with torch.no_grad():
-            desc = invariant_descriptors(p.detach(), self.ks)  # [B, N, F]
+            desc = self.descriptors(p.detach())  # [B, N, F]
         B, N, F = desc.shape
         s = self.scorer(desc.reshape(B * N, F)).reshape(B, N, self.views)
         return p, torch.softmax(s, dim=1)
