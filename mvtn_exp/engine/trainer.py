@@ -225,7 +225,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     # G's learning rate is 0 (optim.selector_epochs reached, or lr_selector=0): C trains on G's
     # views, and neither G's gradient nor the smoothed probes are computed (G's weights are the same)
     frozen = bool(groups["selector"]) and not warm and selector_lr(opt) == 0.0
-    smoothed = bool(groups["selector"]) and not warm and not frozen and cfg.optim.selector_grad == "smoothed"
+    learning = bool(groups["selector"]) and not warm and not frozen
+    smoothed = learning and cfg.optim.selector_grad == "smoothed"
     flips = model.polarity if exploring_flips(model, cfg, epoch) else None
     per_shape_loss = classification.loss_fn(cfg.task, reduction="none")
     selector_loss = classification.selector_loss_fn(cfg.optim.selector_loss, cfg.task)

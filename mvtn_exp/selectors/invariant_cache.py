@@ -45,9 +45,6 @@ class InvariantCache:
     def __len__(self) -> int:
         return len(self.entries)
 
-    def clear(self) -> None:
-        self.entries.clear()
-
     def __call__(self, points: Tensor) -> Tensor:
         if self.capacity == 0:
             return self.fn(points)
