@@ -77,7 +77,7 @@ def build_selector_from(cfg: TrainConfig) -> nn.Module:
         return build_selector("spherical", cfg.views, distance=s.distance, sphere=s.sphere)
     if s.name == "mvtn_poi":
         return build_selector("mvtn_poi", cfg.views, distance=s.distance, gain=s.poi_gain, sphere=s.sphere,
-                              cache=s.poi_cache)
+                              cache=s.poi_cache, learn_gain=s.poi_learn_gain)
     pe = cfg.point_encoder
     kw = dict(point_encoder=pe.name, features=pe.features, distance=s.distance, learn_distance=s.learn_distance,
               distance_bound=s.distance_bound, azim_bound=s.azim_bound, elev_bound=s.elev_bound,

@@ -146,7 +146,8 @@ class SelectorConfig:
     seed), at 17.5 vs 26.0 s per epoch. The paper setups read all points.
     ``regressor`` (learned MVTN selectors): ``compact`` (b -> b -> b -> 5M -> 2M, the default) or
     ``official`` (the official code's MLP: one more 2M -> 2M layer, dropout 0.5; the paper setups).
-    ``poi_gain``: how far mvtn_poi's point of interest pulls its cameras from u0; ``poi_cache``: how
+    ``poi_gain``: how far mvtn_poi's point of interest pulls its cameras from u0 (``poi_learn_gain``:
+    a parameter of G starting there, so G can shrink u0's pose-dependent tilt); ``poi_cache``: how
     many shapes' rotation-invariant point descriptors mvtn_poi keeps for later steps (0: computed
     at every step; 4096 shapes x 256 points: about 46 MB; ``selectors/invariant_cache.py``).
     """
@@ -163,6 +164,7 @@ class SelectorConfig:
     num_points: Optional[int] = 256
     poi_gain: float = 8.0
     poi_cache: int = 4096
+    poi_learn_gain: bool = False
     regressor: str = "compact"
 
     @property

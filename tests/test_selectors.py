@@ -374,3 +374,50 @@ def test_the_constant_u0_input_is_cancelled_by_the_first_batchnorm():
         a = sel.regressor(torch.cat([f, u0], 1))
         b = sel.regressor(torch.cat([f, 5.0 * u0 + 1.0], 1))
     assert float((a - b).abs().max()) < 1e-5 and float(a.abs().max()) > 1e-3
+
+
+def test_poi_learned_gain_starts_at_u0_and_shrinks_the_tilt_of_u0():
+    """selector.poi_learn_gain: the gain is a parameter of G (log scale) that starts where the fixed
+    gain is, so the start (u = u0) and the views for equal weights are unchanged; a larger gain
+    brings each camera closer to the direction of its point of interest q, and the gain gets a
+    gradient from the views."""
+    torch.manual_seed(0)
+    fixed = build_selector("mvtn_poi", 2, gain=8.0).eval()
+    learned = build_selector("mvtn_poi", 2, gain=8.0, learn_gain=True).eval()
+    assert "log_gain" not in dict(fixed.named_parameters())
+    assert "log_gain" in dict(learned.named_parameters()) and learned.gain == pytest.approx(8.0)
+    pts = clouds(B=3, N=96) * torch.tensor([1.0, 0.6, 0.3])
+    a0, e0, _ = learned.initial_views(3)
+    azim, elev, _ = learned(pts)
+    assert torch.allclose(torch.remainder(azim - a0 + 180, 360) - 180, torch.zeros_like(azim), atol=1e-3)
+    for p in learned.scorer[-1].parameters():
+        torch.nn.init.normal_(p, std=1.0)
+    fixed.load_state_dict(learned.state_dict(), strict=False)
+    for a, b in zip(fixed(pts), learned(pts)):
+        assert torch.equal(a, b)
+
+    def tilt(sel):  # angle (deg) between each camera and its point of interest's direction
+        p, w = sel.point_weights(pts)
+        q = torch.nn.functional.normalize(torch.einsum("bnm,bnc->bmc", w, p), dim=-1)
+        az, el, _ = sel(pts)
+        a, e = torch.deg2rad(az), torch.deg2rad(el)
+        d = torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1)
+        return torch.rad2deg(torch.acos((d * q).sum(-1).clamp(-1, 1)))
+
+    before = tilt(learned)
+    with torch.no_grad():
+        learned.log_gain += 3.0  # x 20
+    after = tilt(learned)
+    assert float(before.min()) > 2.0 and bool((after < before).all())
+    assert float(after.median()) < float(before.median()) / 3
+    learned.train()
+    azim, elev, _ = learned(pts)
+    (azim.sum() + elev.sum()).backward()
+    assert learned.log_gain.grad is not None and float(learned.log_gain.grad.abs()) > 0
+
+
+def test_poi_learn_gain_reaches_the_model_from_the_config():
+    from mvtn_exp.engine.trainer import as_config
+    from mvtn_exp.model import build_mvtn
+    model = build_mvtn(as_config({"selector": {"name": "mvtn_poi", "poi_learn_gain": True}}), num_classes=3)
+    assert any(p is model.selector.log_gain for p in model.parameter_groups()["selector"])

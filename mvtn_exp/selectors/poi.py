@@ -22,6 +22,12 @@ shape by construction (rotating the points rotates ``q`` and so the camera, exac
 At initialisation the last layer is zero: the weights are uniform, ``q = 0`` and ``u = u0``
 exactly, as in the paper's MVTN.
 
+``learn_gain``: the gain is learned (as ``log gain``, starting at ``gain``). The u0 term is the
+same world direction for every pose, so under a random pose it tilts each camera away from the
+direction of ``q`` by up to ``atan(1 / (gain |q|))`` in a direction that changes with the pose
+(about 20 degrees for ``|q| = 0.3`` at gain 8). A learned gain lets G shrink that tilt where a
+view along ``q`` is better; the start, ``u = u0``, is unchanged.
+
 Descriptors per point ``p`` (centred at the cloud's mean), for each ``k`` in ``ks`` with the
 ``k`` nearest neighbours and their centroid ``c``: the mean neighbour distance, ``(c - p) . p / |p|``
 (positive in concavities that open away from the centre, such as the floor of a cup),
@@ -81,18 +87,25 @@ class PointOfInterestSelector(ViewSelector):
     views: M; hidden: MLP width; ks: neighbourhood sizes of the descriptors; gain: how far the
     point of interest pulls the camera from u0 (the shapes lie in the unit sphere: with gain 8 a
     point 0.25 from the centre outweighs u0 twice); distance: camera distance; cache: how many
-    shapes' descriptors are kept for later steps (0: computed at every call).
+    shapes' descriptors are kept for later steps (0: computed at every call); learn_gain: the gain
+    is a parameter (``log_gain``), trained with G.
     """
 
     learned = True
 
     def __init__(self, views: int, hidden: int = 64, ks: Sequence[int] = (16, 48), gain: float = 8.0,
-                 distance: float = 2.2, sphere: str = "equal_area", cache: int = 0, **_ignored) -> None:
+                 distance: float = 2.2, sphere: str = "equal_area", cache: int = 0, learn_gain: bool = False,
+                 **_ignored) -> None:
         super().__init__(views)
         if not gain > 0:
             raise ValueError(f"PointOfInterestSelector: gain must be > 0, got {gain!r}")
         M = self.views
-        self.ks, self.gain, self.distance = tuple(int(k) for k in ks), float(gain), float(distance)
+        self.ks, self.distance = tuple(int(k) for k in ks), float(distance)
+        log_gain = torch.tensor(float(gain)).log()
+        if learn_gain:
+            self.log_gain = nn.Parameter(log_gain)
+        else:
+            self.register_buffer("log_gain", log_gain, persistent=False)
         self.descriptors = InvariantCache(partial(invariant_descriptors, ks=self.ks), cache)
         azim0, elev0, _ = layouts.spherical(M, 1, distance=distance, sphere=sphere)
         self.register_buffer("azim0", azim0[0], persistent=False)
@@ -124,8 +137,14 @@ class PointOfInterestSelector(ViewSelector):
         self._check_points(points)
         p, w = self.point_weights(points.to(self.d0.dtype))
         q = torch.einsum("bnm,bnc->bmc", w, p)  # [B, M, 3]
-        azim, elev = direction_to_angles(self.d0 + self.gain * q)
+        azim, elev = direction_to_angles(self.d0 + self.log_gain.exp() * q)
         return azim, elev, torch.full_like(azim, self.distance)
 
+    @property
+    def gain(self) -> float:
+        """The current gain (learned with ``learn_gain``)."""
+        return float(self.log_gain.detach().exp())
+
     def extra_repr(self) -> str:
-        return f"views={self.views}, ks={self.ks}, gain={self.gain}, distance={self.distance}"
+        learned = ", learned" if isinstance(self.log_gain, nn.Parameter) else ""
+        return f"views={self.views}, ks={self.ks}, gain={self.gain:g}{learned}, distance={self.distance}"
