@@ -11,6 +11,7 @@ from .models.multiview import build_multiview
 from .render.renderer import MultiViewRenderer
 from .schema import SHAPES, TrainConfig
 from .selectors import build_selector
+from .selectors.hypotheses import HypothesisRace
 from .selectors.polarity import ViewPolarity
 
 
@@ -22,8 +23,10 @@ class MVTN(nn.Module):
     """
 
     def __init__(self, selector: nn.Module, renderer: MultiViewRenderer, mvnet: nn.Module, shape: str = "mesh",
-                 selector_points: Optional[int] = None, polarity: Optional[ViewPolarity] = None):
+                 selector_points: Optional[int] = None, polarity: Optional[ViewPolarity] = None,
+                 hypotheses: Optional[HypothesisRace] = None):
         super().__init__()
+        self.hypotheses = hypotheses  # sets of views tried side by side early on (selectors/hypotheses.py)
         self.polarity = polarity  # which side of its axis each learned view looks from (selectors/polarity.py)
         self.selector_points = selector_points  # a learned G reads the first n points (None: all)
         if shape not in SHAPES:
@@ -41,12 +44,15 @@ class MVTN(nn.Module):
     def device(self):
         return next(self.mvnet.parameters()).device
 
-    def select(self, batch: dict):
-        """G: ``batch["points"] [B, N, 3]`` -> ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world units)."""
+    def select(self, batch: dict, all_hypotheses: bool = False):
+        """G: ``batch["points"] [B, N, 3]`` -> ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world
+        units); with ``all_hypotheses`` (a G holding H hypotheses) each ``[B, H * M]``."""
         points = batch["points"]
         n = self.selector_points
         if n is not None and getattr(self.selector, "learned", False):
             points = points[:, :n]  # the points are uniform surface samples in random order
+        if all_hypotheses:
+            return self.selector(points.to(self.device), all_hypotheses=True)
         views = self.selector(points.to(self.device))
         return views if self.polarity is None else self.polarity(views)
 
@@ -77,7 +83,7 @@ def build_selector_from(cfg: TrainConfig) -> nn.Module:
         return build_selector("spherical", cfg.views, distance=s.distance, sphere=s.sphere)
     if s.name == "mvtn_poi":
         return build_selector("mvtn_poi", cfg.views, distance=s.distance, gain=s.poi_gain, sphere=s.sphere,
-                              cache=s.poi_cache, learn_gain=s.poi_learn_gain)
+                              cache=s.poi_cache, learn_gain=s.poi_learn_gain, hypotheses=s.hypotheses)
     pe = cfg.point_encoder
     kw = dict(point_encoder=pe.name, features=pe.features, distance=s.distance, learn_distance=s.learn_distance,
               distance_bound=s.distance_bound, azim_bound=s.azim_bound, elev_bound=s.elev_bound,
@@ -100,5 +106,6 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
     with torch.random.fork_rng(devices=[]):
         selector = build_selector_from(cfg)
     polarity = ViewPolarity(cfg.views) if cfg.optim.flip_explore > 0 else None
+    race = HypothesisRace(cfg.selector.hypotheses) if cfg.selector.hypotheses > 1 else None
     return MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,
-                selector_points=cfg.selector.num_points, polarity=polarity)
+                selector_points=cfg.selector.num_points, polarity=polarity, hypotheses=race)

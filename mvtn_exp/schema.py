@@ -150,6 +150,8 @@ class SelectorConfig:
     a parameter of G starting there, so G can shrink u0's pose-dependent tilt); ``poi_cache``: how
     many shapes' rotation-invariant point descriptors mvtn_poi keeps for later steps (0: computed
     at every step; 4096 shapes x 256 points: about 46 MB; ``selectors/invariant_cache.py``).
+    ``hypotheses`` (mvtn_poi): sets of M views G holds and the trainer tries side by side for
+    ``optim.hypothesis_epochs``, keeping the one with the lowest loss (``selectors/hypotheses.py``).
     """
 
     name: str = "mvtn_spherical"
@@ -165,6 +167,7 @@ class SelectorConfig:
     poi_gain: float = 8.0
     poi_cache: int = 4096
     poi_learn_gain: bool = False
+    hypotheses: int = 1
     regressor: str = "compact"
 
     @property
@@ -185,6 +188,10 @@ class SelectorConfig:
             at_least("selector.num_points", self.num_points, 1)
         at_least("selector.poi_gain", self.poi_gain, 0.0, strict=True)
         at_least("selector.poi_cache", self.poi_cache, 0)
+        at_least("selector.hypotheses", self.hypotheses, 1)
+        if self.hypotheses > 1 and self.name != "mvtn_poi":
+            raise ValueError(f"selector.hypotheses={self.hypotheses}: several sets of views are built for "
+                             f"selector=mvtn_poi only, got selector={self.name}")
         if self.learn_distance:
             at_least("selector.distance_bound", self.distance_bound, 0.0, strict=True)
         return self
@@ -269,7 +276,9 @@ class OptimConfig:
     ``selector_loss``: what G's smoothed gradient minimises: ``task`` (the paper's: C's own loss)
     or ``centered_logit`` (``mean_c z_c - z_y``: the task loss without its label-free confidence
     term ``logsumexp z - mean z``, which pulls G to views where C's output is flat while C is still
-    at chance; ``tasks/classification.py``); needs ``selector_grad=smoothed``."""
+    at chance; ``tasks/classification.py``); needs ``selector_grad=smoothed``.
+    ``hypothesis_epochs``: with ``selector.hypotheses`` H > 1, the first epochs render all H sets of
+    views, train C on each, and keep the set with the lowest loss (``selectors/hypotheses.py``)."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -289,6 +298,7 @@ class OptimConfig:
     selector_loss: str = "task"
     flip_explore: float = 0.0
     flip_epochs: int = 10
+    hypothesis_epochs: int = 0
     bn_recalibrate: int = 0
     bn_recalibrate_scope: str = "eval"
 
@@ -315,6 +325,7 @@ class OptimConfig:
         if not 0.0 <= self.flip_explore < 1.0:
             raise ValueError(f"optim.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
         at_least("optim.flip_epochs", self.flip_epochs, 1)
+        at_least("optim.hypothesis_epochs", self.hypothesis_epochs, 0)
         at_least("optim.bn_recalibrate", self.bn_recalibrate, 0)
         one_of("optim.bn_recalibrate_scope", self.bn_recalibrate_scope, BN_RECALIBRATE_SCOPES)
         return self
@@ -402,6 +413,12 @@ class TrainConfig:
         if self.optim.flip_explore > 0 and not self.selector.learned:
             raise ValueError(f"optim.flip_explore={self.optim.flip_explore}: turning views round needs a learned "
                              f"selector, got selector={self.selector.name}")
+        if (self.selector.hypotheses > 1) != (self.optim.hypothesis_epochs > 0):
+            raise ValueError(f"selector.hypotheses={self.selector.hypotheses} with optim.hypothesis_epochs="
+                             f"{self.optim.hypothesis_epochs}: set both (hypotheses >= 2 and hypothesis_epochs >= 1) "
+                             "or neither")
+        if self.selector.hypotheses > 1 and self.optim.flip_explore > 0:
+            raise ValueError("selector.hypotheses with optim.flip_explore: choose one way to explore")
         check_device("device", self.device)
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
                      self.optim, self.augment, self.logger):

@@ -100,6 +100,8 @@ def test_top_level_keys_reach_the_parts():
     (["optim.flip_explore=1.0"], "expected a probability in [0, 1)"),
     (["optim.flip_explore=0.5", "optim.flip_epochs=0"], "optim.flip_epochs"),
     (["selector=spherical", "optim.flip_explore=0.5"], "needs a learned selector, got selector=spherical"),
+    (["selector=mvtn_poi", "selector.hypotheses=2"], "set both"),
+    (["selector=mvtn_spherical", "selector.hypotheses=2", "optim.hypothesis_epochs=2"], "for selector=mvtn_poi only"),
     (["optim.bn_recalibrate=-1"], "optim.bn_recalibrate"),
     (["optim.bn_recalibrate_scope=test"], "optim.bn_recalibrate_scope"),
     (["-m", "views=1,0"], "views=0"),

@@ -226,6 +226,31 @@ def test_axis_views_look_down_the_cup(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1 and "need dataset=synthetic_views" in err[0]
     assert not (tmp_path / "run").exists()
+    with pytest.raises(SystemExit) as e:
+        av.main(["--out", str(tmp_path / "run"), "--tilt", "-5", "dataset=synthetic_views"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "--tilt=-5" in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_tilted_axis_views_keep_their_angle_and_spread_around_the_axis():
+    """``axis_views --tilt``: every direction exactly ``tilt`` degrees from its axis (poles too),
+    in directions that differ between shapes and between draws."""
+    from mvtn_exp.bench import axis_views as av
+
+    axis = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(0)), dim=1)
+    axis = torch.cat([axis, torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])])
+    g = torch.Generator().manual_seed(1)
+    for tilt in (0.0, 20.0, 40.0, 180.0):
+        d = av.tilted(axis, tilt, g)
+        torch.testing.assert_close(d.norm(dim=1), torch.ones(len(axis), dtype=torch.float64))
+        unit = torch.nn.functional.normalize(axis.double(), dim=1)
+        angle = torch.rad2deg(torch.atan2(torch.linalg.cross(d, unit).norm(dim=1), (d * unit).sum(1)))
+        torch.testing.assert_close(angle, torch.full_like(angle, tilt), atol=1e-3, rtol=0)
+    a, b = av.tilted(axis, 20.0, g), av.tilted(axis, 20.0, g)
+    assert (a - b).norm(dim=1).gt(1e-3).float().mean() > 0.9  # a new direction per draw
+    off = a - torch.cos(torch.tensor(0.3491, dtype=torch.float64)) * axis.double()
+    assert off[:64].mean(0).norm() < 0.1 * off[:64].norm(dim=1).mean()  # spread around, not one side
 
 
 @pytest.mark.parametrize("elev", [90.0, -90.0, 89.9999, 120.0])

@@ -27,6 +27,7 @@ from ..data.datasets import build_dataset
 from ..model import MVTN, build_mvtn
 from ..schema import TrainConfig
 from ..selectors.fixed import random_directions
+from ..selectors.hypotheses import join_views, split_images, split_views
 from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
@@ -182,6 +183,12 @@ def exploring_flips(model: MVTN, cfg: TrainConfig, epoch: int) -> bool:
             and epoch >= cfg.optim.selector_warmup_epochs)
 
 
+def exploring_hypotheses(model: MVTN, cfg: TrainConfig, epoch: int) -> bool:
+    """Whether training epoch ``epoch`` (0-based) renders all of G's hypotheses (selectors/hypotheses.py)."""
+    return (model.hypotheses is not None and epoch < cfg.optim.hypothesis_epochs
+            and epoch >= cfg.optim.selector_warmup_epochs)
+
+
 def flip_generator(seed: int, step: int) -> torch.Generator:
     """The flip draws' own generator for global step ``step`` (a stream apart from the smoothed noise)."""
     return view_gradient.noise_generator(int(seed) + 7_919, step)
@@ -228,6 +235,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     learning = bool(groups["selector"]) and not warm and not frozen
     smoothed = learning and cfg.optim.selector_grad == "smoothed"
     flips = model.polarity if exploring_flips(model, cfg, epoch) else None
+    # H > 1: all of G's hypotheses are rendered, and C classifies each as a shape of its own
+    H = model.hypotheses.hypotheses if exploring_hypotheses(model, cfg, epoch) else 1
     per_shape_loss = classification.loss_fn(cfg.task, reduction="none")
     selector_loss = classification.selector_loss_fn(cfg.optim.selector_loss, cfg.task)
     bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=None if cfg.logger.progress else True)
@@ -239,13 +248,15 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
                 batch = augment(batch, cfg)
         if batch is None:
             break
-        labels = batch["labels"].to(model.device)
+        labels = batch["labels"].to(model.device).repeat_interleave(H)  # [B * H]
         with timer.stage("selector"), torch.set_grad_enabled(not frozen):
-            views = warmup_views(model, batch, cfg) if warm else model.select(batch)
+            views = warmup_views(model, batch, cfg) if warm else model.select(batch, all_hypotheses=H > 1)
             if flips is not None:  # some views from their antipodes (selectors/polarity.py)
                 views, flip_mask = flips.explore(views, cfg.optim.flip_explore, flip_generator(cfg.seed, step))
         with timer.stage("render"), torch.set_grad_enabled(not smoothed):
             images = model.render(batch, *views)  # smoothed: R is not differentiated
+            if H > 1:
+                images = split_images(images, H)  # [B * H, M, 3, h, w]
         with timer.stage("backbone"):
             logits, _ = model.mvnet(images)
             loss = loss_fn(logits, labels)
@@ -254,14 +265,17 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
                                    f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
         if flips is not None:
             flips.record(per_shape_loss(logits.detach(), labels), flip_mask)
+        if H > 1:
+            model.hypotheses.record(per_shape_loss(logits.detach(), labels).reshape(-1, H))
         objective = loss
         if smoothed and step % cfg.optim.smoothed_every == 0:  # G's gradient from the loss at perturbed views
             # (view_gradient.py), charged to G; on the other steps G gets no gradient and AdamW leaves it
             with timer.stage("selector"):
                 g = view_gradient.smoothed_view_gradient(
-                    view_gradient.model_render_loss(model, batch, labels, selector_loss), views,
+                    view_gradient.model_render_loss(model, batch, labels, selector_loss, hypotheses=H),
+                    split_views(views, H) if H > 1 else views,
                     cfg.optim.smoothed_pairs, cfg.optim.smoothed_sigma, view_gradient.noise_generator(cfg.seed, step))
-                objective = loss + view_gradient.surrogate(views, *g)
+                objective = loss + view_gradient.surrogate(views, *(join_views(g, H) if H > 1 else g))
         with timer.stage("optimizer"):
             opt.zero_grad(set_to_none=True)
         timer.backward(objective, views, images)
@@ -394,6 +408,14 @@ def train(cfg, run_dir, build_model=None) -> dict:
                     turned = model.polarity.decide()
                     if turned:
                         say(run_dir, f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
+                hypothesis_losses = None
+                if exploring_hypotheses(model, cfg, epoch):
+                    active, hypothesis_losses = model.hypotheses.decide()
+                    if active is not None:
+                        model.selector.active.fill_(active)
+                        say(run_dir, f"epoch {epoch + 1}: hypotheses' mean training loss "
+                                     f"{' / '.join(f'{x:.4f}' for x in hypothesis_losses)}: hypothesis {active} active"
+                                     + (" (kept from now on)" if epoch + 1 == cfg.optim.hypothesis_epochs else ""))
                 train_bn = None  # bn_recalibrate_scope=eval: training's own statistics, put back after saving
                 if cfg.optim.bn_recalibrate:
                     if cfg.optim.bn_recalibrate_scope == "eval":
@@ -410,7 +432,9 @@ def train(cfg, run_dir, build_model=None) -> dict:
                                 "skipped": tr["skipped"], "clipped": tr["clipped"],
                                 "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
                                 **offsets, **detail, **lrs, "seconds": seconds,
-                                **({"views_flipped": model.polarity.flipped.tolist()} if model.polarity is not None else {})})
+                                **({"views_flipped": model.polarity.flipped.tolist()} if model.polarity is not None else {}),
+                                **({"hypothesis_active": int(model.selector.active), "hypothesis_losses": hypothesis_losses}
+                                   if model.hypotheses is not None else {})})
                 logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
                                 "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
                                 "views/offset_azim": offsets["view_offset_azim"],

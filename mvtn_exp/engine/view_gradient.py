@@ -32,6 +32,8 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
+from ..selectors.hypotheses import join_views, split_images
+
 
 @contextmanager
 def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
@@ -73,11 +75,17 @@ def smoothed_view_gradient(render_loss: Callable[[Tensor, Tensor, Tensor], Tenso
     return g_azim, g_elev
 
 
-def model_render_loss(model, batch: dict, labels: Tensor, per_shape_loss: Callable[[Tensor, Tensor], Tensor]):
-    """``render_loss`` for ``smoothed_view_gradient``: R then C of ``model`` (an ``MVTN``) in eval mode."""
+def model_render_loss(model, batch: dict, labels: Tensor, per_shape_loss: Callable[[Tensor, Tensor], Tensor],
+                      hypotheses: int = 1):
+    """``render_loss`` for ``smoothed_view_gradient``: R then C of ``model`` (an ``MVTN``) in eval mode.
+
+    hypotheses H > 1: the views come as ``[B * H, M]`` (``selectors.hypotheses.split_views``), each
+    hypothesis's M views are classified as a shape of their own, and ``labels`` are ``[B * H]``."""
     def render_loss(azim: Tensor, elev: Tensor, dist: Tensor) -> Tensor:
+        views = (azim, elev, dist) if hypotheses == 1 else join_views((azim, elev, dist), hypotheses)
         with eval_mode(model):
-            logits, _ = model.mvnet(model.render(batch, azim, elev, dist))
+            images = model.render(batch, *views)
+            logits, _ = model.mvnet(images if hypotheses == 1 else split_images(images, hypotheses))
         return per_shape_loss(logits, labels)
     return render_loss
 

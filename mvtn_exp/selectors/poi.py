@@ -88,18 +88,24 @@ class PointOfInterestSelector(ViewSelector):
     point of interest pulls the camera from u0 (the shapes lie in the unit sphere: with gain 8 a
     point 0.25 from the centre outweighs u0 twice); distance: camera distance; cache: how many
     shapes' descriptors are kept for later steps (0: computed at every call); learn_gain: the gain
-    is a parameter (``log_gain``), trained with G.
+    is a parameter (``log_gain``), trained with G; hypotheses: sets of M views held side by side
+    (the module docstring).
     """
 
     learned = True
 
     def __init__(self, views: int, hidden: int = 64, ks: Sequence[int] = (16, 48), gain: float = 8.0,
                  distance: float = 2.2, sphere: str = "equal_area", cache: int = 0, learn_gain: bool = False,
-                 **_ignored) -> None:
+                 hypotheses: int = 1, **_ignored) -> None:
         super().__init__(views)
         if not gain > 0:
             raise ValueError(f"PointOfInterestSelector: gain must be > 0, got {gain!r}")
-        M = self.views
+        if int(hypotheses) < 1:
+            raise ValueError(f"PointOfInterestSelector: hypotheses must be >= 1, got {hypotheses!r}")
+        M, self.hypotheses = self.views, int(hypotheses)
+        H = self.hypotheses
+        if H > 1:
+            self.register_buffer("active", torch.zeros((), dtype=torch.long))
         self.ks, self.distance = tuple(int(k) for k in ks), float(distance)
         log_gain = torch.tensor(float(gain)).log()
         if learn_gain:
@@ -107,37 +113,49 @@ class PointOfInterestSelector(ViewSelector):
         else:
             self.register_buffer("log_gain", log_gain, persistent=False)
         self.descriptors = InvariantCache(partial(invariant_descriptors, ks=self.ks), cache)
-        azim0, elev0, _ = layouts.spherical(M, 1, distance=distance, sphere=sphere)
-        self.register_buffer("azim0", azim0[0], persistent=False)
+        azim0, elev0, _ = layouts.spherical(M * H, 1, distance=distance, sphere=sphere)
+        order = torch.arange(M * H).reshape(M, H).T.reshape(-1)  # hypothesis h, view m <- layout m * H + h
+        azim0, elev0 = azim0[:, order], elev0[:, order]
+        self.register_buffer("azim0", azim0[0], persistent=False)  # [H * M], hypothesis-major
         self.register_buffer("elev0", elev0[0], persistent=False)
         a, e = torch.deg2rad(azim0[0]), torch.deg2rad(elev0[0])
         self.register_buffer("d0", torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1),
-                             persistent=False)  # [M, 3]
+                             persistent=False)  # [H * M, 3]
         f = 1 + 5 * len(self.ks)
         self.scorer = nn.Sequential(nn.BatchNorm1d(f), nn.Linear(f, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),
                                     nn.Linear(hidden, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),
-                                    nn.Linear(hidden, M))
+                                    nn.Linear(hidden, M * H))
         nn.init.zeros_(self.scorer[-1].weight)
         nn.init.zeros_(self.scorer[-1].bias)
 
-    def initial_views(self, batch: int = 1) -> Views:
-        azim = self.azim0.expand(batch, -1).clone()
-        return azim, self.elev0.expand(batch, -1).clone(), torch.full_like(azim, self.distance)
+    def _columns(self, t: Tensor, all_hypotheses: bool) -> Tensor:
+        """``[..., H * M]`` -> the active hypothesis's ``[..., M]`` (all of them if asked, or if H = 1)."""
+        if self.hypotheses == 1 or all_hypotheses:
+            return t
+        a = int(self.active)
+        return t[..., a * self.views:(a + 1) * self.views]
+
+    def initial_views(self, batch: int = 1, all_hypotheses: bool = False) -> Views:
+        azim = self._columns(self.azim0, all_hypotheses).expand(batch, -1).clone()
+        elev = self._columns(self.elev0, all_hypotheses).expand(batch, -1).clone()
+        return azim, elev, torch.full_like(azim, self.distance)
 
     def point_weights(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        """``[B, N, 3]`` -> (centred points ``[B, N, 3]``, softmax weights over the points ``[B, N, M]``)."""
+        """``[B, N, 3]`` -> (centred points ``[B, N, 3]``, softmax weights over the points ``[B, N, H * M]``)."""
         p = points - points.mean(1, keepdim=True)
         with torch.no_grad():
             desc = self.descriptors(p.detach())  # [B, N, F]
         B, N, F = desc.shape
-        s = self.scorer(desc.reshape(B * N, F)).reshape(B, N, self.views)
+        s = self.scorer(desc.reshape(B * N, F)).reshape(B, N, self.views * self.hypotheses)
         return p, torch.softmax(s, dim=1)
 
-    def forward(self, points: Tensor) -> Views:
+    def forward(self, points: Tensor, all_hypotheses: bool = False) -> Views:
+        """``[B, N, 3]`` -> views ``[B, M]`` (``[B, H * M]`` with ``all_hypotheses``)."""
         self._check_points(points)
         p, w = self.point_weights(points.to(self.d0.dtype))
-        q = torch.einsum("bnm,bnc->bmc", w, p)  # [B, M, 3]
+        q = torch.einsum("bnm,bnc->bmc", w, p)  # [B, H * M, 3]
         azim, elev = direction_to_angles(self.d0 + self.log_gain.exp() * q)
+        azim, elev = self._columns(azim, all_hypotheses), self._columns(elev, all_hypotheses)
         return azim, elev, torch.full_like(azim, self.distance)
 
     @property
@@ -147,4 +165,5 @@ class PointOfInterestSelector(ViewSelector):
 
     def extra_repr(self) -> str:
         learned = ", learned" if isinstance(self.log_gain, nn.Parameter) else ""
-        return f"views={self.views}, ks={self.ks}, gain={self.gain:g}{learned}, distance={self.distance}"
+        hyp = f", hypotheses={self.hypotheses} (active {int(self.active)})" if self.hypotheses > 1 else ""
+        return f"views={self.views}, ks={self.ks}, gain={self.gain:g}{learned}, distance={self.distance}{hyp}"

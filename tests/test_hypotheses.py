@@ -1,0 +1,114 @@
+"""Several sets of views tried side by side (selectors/hypotheses.py): the selector's hypotheses,
+the race that picks one, the reshapes that give each hypothesis to C as a shape of its own, and
+its place in training (decisions, checkpoints, exact resume, bad settings)."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.engine.trainer import as_config
+from mvtn_exp.selectors import build_selector
+from mvtn_exp.selectors.hypotheses import HypothesisRace, join_views, split_images, split_views
+
+from test_train_e2e import tiny
+
+
+def direction(azim, elev):
+    a, e = torch.deg2rad(azim), torch.deg2rad(elev)
+    return torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1)
+
+
+def test_poi_hypotheses_start_apart_and_the_active_one_is_the_output():
+    torch.manual_seed(0)
+    sel = build_selector("mvtn_poi", 2, hypotheses=3).eval()
+    pts = torch.randn(4, 80, 3) * torch.tensor([1.0, 0.6, 0.3])
+    a0, e0, _ = sel.initial_views(1, all_hypotheses=True)
+    assert a0.shape == (1, 6)
+    d = direction(a0[0], e0[0])  # [6, 3]: six distinct starting directions (the spherical layout of 6)
+    assert float((d[:, None] - d[None]).norm(dim=-1).add(torch.eye(6) * 9).min()) > 0.3
+    for p in sel.scorer[-1].parameters():
+        torch.nn.init.normal_(p, std=1.0)
+    every = sel(pts, all_hypotheses=True)
+    assert every[0].shape == (4, 6)
+    for h in range(3):
+        sel.active.fill_(h)
+        out = sel(pts)
+        assert out[0].shape == (4, 2)
+        for o, e in zip(out, every):
+            assert torch.equal(o, e[:, 2 * h:2 * h + 2])
+        ia, ie, _ = sel.initial_views(2)
+        assert torch.equal(ia[0], a0[0, 2 * h:2 * h + 2]) and torch.equal(ie[0], e0[0, 2 * h:2 * h + 2])
+    assert int(sel.state_dict()["active"]) == 2
+    one = build_selector("mvtn_poi", 2)  # one hypothesis: no buffer, the old layout and checkpoints
+    assert "active" not in one.state_dict()
+    with pytest.raises(ValueError, match="hypotheses must be >= 1"):
+        build_selector("mvtn_poi", 2, hypotheses=0)
+
+
+def test_race_picks_the_lowest_mean_loss_and_clears():
+    race = HypothesisRace(3)
+    race.record(torch.tensor([[1.0, 2.0, 0.5], [1.0, 2.0, 2.5]]))  # means 1.0 / 2.0 / 1.5
+    race.record(torch.tensor([[1.0, 2.0, 1.5]]))
+    active, means = race.decide()
+    assert active == 0 and means == pytest.approx([1.0, 2.0, 1.5])
+    assert not race.stats.any()
+    assert race.decide() == (None, [])  # nothing recorded: nothing to decide
+    with pytest.raises(ValueError, match=r"expected losses \[B, 3\]"):
+        race.record(torch.zeros(4, 2))
+    with pytest.raises(ValueError, match="at least 2"):
+        HypothesisRace(1)
+
+
+def test_split_and_join_give_each_hypothesis_its_own_row():
+    B, H, M = 3, 2, 4
+    images = torch.randn(B, H * M, 3, 5, 5)
+    rows = split_images(images, H)
+    assert rows.shape == (B * H, M, 3, 5, 5)
+    for b in range(B):
+        for h in range(H):
+            assert torch.equal(rows[b * H + h], images[b, h * M:(h + 1) * M])
+    views = tuple(torch.randn(B, H * M) for _ in range(3))
+    split = split_views(views, H)
+    assert split[0].shape == (B * H, M) and torch.equal(split[1][1 * H + 1], views[1][1, M:])
+    assert all(torch.equal(a, b) for a, b in zip(join_views(split, H), views))
+    with pytest.raises(ValueError, match="do not split"):
+        split_images(torch.zeros(2, 5, 3, 4, 4), 2)
+
+
+HYP = {"selector.name": "mvtn_poi", "selector.hypotheses": 2, "optim.hypothesis_epochs": 1,
+       "optim.selector_grad": "smoothed", "optim.lr_selector": 1e-2}
+
+
+def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
+    cache = str(tmp_path / "cache")
+    full = train(tiny(cache, epochs=2, **HYP), tmp_path / "full")
+    first, second = full["history"]
+    assert len(first["hypothesis_losses"]) == 2 and second["hypothesis_losses"] is None
+    want = min(range(2), key=lambda h: first["hypothesis_losses"][h])
+    assert first["hypothesis_active"] == second["hypothesis_active"] == want
+    assert f"hypothesis {want} active (kept from now on)" in (tmp_path / "full" / "train.log").read_text()
+    state = checkpoint.load(tmp_path / "full" / "last.pt")
+    assert int(state["model"]["selector.active"]) == want and not state["model"]["hypotheses.stats"].any()
+    train(tiny(cache, epochs=1, **HYP), tmp_path / "a")
+    resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **HYP), tmp_path / "b")
+    assert resumed["confusion_matrix"] == full["confusion_matrix"]
+    for h_a, h_b in zip(resumed["history"], full["history"], strict=True):
+        assert abs(h_a["train_loss"] - h_b["train_loss"]) <= 1e-6
+    # one hypothesis, the same seed: the first epoch differs (C saw the second hypothesis too)
+    plain = train(tiny(cache, epochs=1, **{"selector.name": "mvtn_poi", "optim.selector_grad": "smoothed",
+                                           "optim.lr_selector": 1e-2}), tmp_path / "plain")
+    assert abs(plain["history"][0]["train_loss"] - first["train_loss"]) > 1e-6
+
+
+@pytest.mark.parametrize("overrides, needle", [
+    ({"selector.name": "mvtn_poi", "selector.hypotheses": 2}, "set both"),
+    ({"selector.name": "mvtn_poi", "optim.hypothesis_epochs": 2}, "set both"),
+    ({"selector.name": "mvtn_spherical", "selector.hypotheses": 2, "optim.hypothesis_epochs": 2},
+     "for selector=mvtn_poi only, got selector=mvtn_spherical"),
+    ({**HYP, "optim.flip_explore": 0.5}, "choose one way to explore"),
+    ({**HYP, "selector.hypotheses": 0}, "selector.hypotheses"),
+])
+def test_bad_hypothesis_settings_are_refused(tmp_path, overrides, needle):
+    with pytest.raises(ValueError, match=needle):
+        as_config(tiny(str(tmp_path), **overrides))
