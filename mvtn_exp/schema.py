@@ -277,8 +277,10 @@ class OptimConfig:
     or ``centered_logit`` (``mean_c z_c - z_y``: the task loss without its label-free confidence
     term ``logsumexp z - mean z``, which pulls G to views where C's output is flat while C is still
     at chance; ``tasks/classification.py``); needs ``selector_grad=smoothed``.
-    ``hypothesis_epochs``: with ``selector.hypotheses`` H > 1, the first epochs render all H sets of
-    views, train C on each, and keep the set with the lowest loss (``selectors/hypotheses.py``)."""
+    ``hypothesis_epochs``: with ``selector.hypotheses`` H > 1, at most this many first epochs render
+    all H sets of views, train C on each, and keep the set with the lowest loss; earlier once it
+    leads every other by ``hypothesis_z`` paired standard errors (null: never earlier;
+    ``selectors/hypotheses.py``)."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -299,6 +301,7 @@ class OptimConfig:
     flip_explore: float = 0.0
     flip_epochs: int = 10
     hypothesis_epochs: int = 0
+    hypothesis_z: Optional[float] = 3.0
     bn_recalibrate: int = 0
     bn_recalibrate_scope: str = "eval"
 
@@ -326,6 +329,8 @@ class OptimConfig:
             raise ValueError(f"optim.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
         at_least("optim.flip_epochs", self.flip_epochs, 1)
         at_least("optim.hypothesis_epochs", self.hypothesis_epochs, 0)
+        if self.hypothesis_z is not None:
+            at_least("optim.hypothesis_z", self.hypothesis_z, 0.0)
         at_least("optim.bn_recalibrate", self.bn_recalibrate, 0)
         one_of("optim.bn_recalibrate_scope", self.bn_recalibrate_scope, BN_RECALIBRATE_SCOPES)
         return self

@@ -50,14 +50,39 @@ def test_race_picks_the_lowest_mean_loss_and_clears():
     race = HypothesisRace(3)
     race.record(torch.tensor([[1.0, 2.0, 0.5], [1.0, 2.0, 2.5]]))  # means 1.0 / 2.0 / 1.5
     race.record(torch.tensor([[1.0, 2.0, 1.5]]))
-    active, means = race.decide()
-    assert active == 0 and means == pytest.approx([1.0, 2.0, 1.5])
-    assert not race.stats.any()
-    assert race.decide() == (None, [])  # nothing recorded: nothing to decide
+    active, means, clear = race.decide()
+    assert active == 0 and means == pytest.approx([1.0, 2.0, 1.5]) and not clear  # z=None: never clear
+    assert not race.count and not race.sums.any() and not race.products.any()
+    assert race.decide(3.0) == (None, [], False)  # nothing recorded: nothing to decide
     with pytest.raises(ValueError, match=r"expected losses \[B, 3\]"):
         race.record(torch.zeros(4, 2))
     with pytest.raises(ValueError, match="at least 2"):
         HypothesisRace(1)
+    race.finish()
+    assert bool(race.done)
+
+
+def test_a_clear_lead_is_judged_on_paired_differences():
+    """The same shapes under each hypothesis: a small lead that every shape shows is clear, though
+    the shapes' losses spread far more than the lead; a lead of the same mean that is noise is not.
+    The statistic matches a brute-force paired z over the recorded losses."""
+    g = torch.Generator().manual_seed(0)
+    base = 3.0 * torch.randn(400, generator=g)  # shapes differ a lot
+    steady = torch.stack([base, base + 0.05 + 0.05 * torch.randn(400, generator=g)], 1)
+    noisy = torch.stack([base, base + 0.05 + 2.0 * torch.randn(400, generator=g)], 1)
+    for losses, want in ((steady, True), (noisy, False)):
+        race = HypothesisRace(2)
+        for chunk in losses.split(16):
+            race.record(chunk)
+        active, _, clear = race.decide(3.0)
+        d = (losses[:, 1 - active] - losses[:, active]).double()  # the other minus the leader
+        z = float(d.mean() / (d.std() / len(d) ** 0.5))
+        assert clear == want == (z > 3.0), z
+        assert active == 0 or not want
+    # three hypotheses: clear only if the leader beats each of the others
+    race = HypothesisRace(3)
+    race.record(torch.stack([base, base + 1.0, base + 0.001 * torch.randn(400, generator=g)], 1))
+    assert race.decide(3.0)[2] is False
 
 
 def test_split_and_join_give_each_hypothesis_its_own_row():
@@ -87,9 +112,10 @@ def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
     assert len(first["hypothesis_losses"]) == 2 and second["hypothesis_losses"] is None
     want = min(range(2), key=lambda h: first["hypothesis_losses"][h])
     assert first["hypothesis_active"] == second["hypothesis_active"] == want
-    assert f"hypothesis {want} active (kept from now on)" in (tmp_path / "full" / "train.log").read_text()
+    assert f"hypothesis {want} active" in (tmp_path / "full" / "train.log").read_text()
     state = checkpoint.load(tmp_path / "full" / "last.pt")
-    assert int(state["model"]["selector.active"]) == want and not state["model"]["hypotheses.stats"].any()
+    assert int(state["model"]["selector.active"]) == want and bool(state["model"]["hypotheses.done"])
+    assert not state["model"]["hypotheses.sums"].any()
     train(tiny(cache, epochs=1, **HYP), tmp_path / "a")
     resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **HYP), tmp_path / "b")
     assert resumed["confusion_matrix"] == full["confusion_matrix"]
@@ -108,7 +134,19 @@ def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
      "for selector=mvtn_poi only, got selector=mvtn_spherical"),
     ({**HYP, "optim.flip_explore": 0.5}, "choose one way to explore"),
     ({**HYP, "selector.hypotheses": 0}, "selector.hypotheses"),
+    ({**HYP, "optim.hypothesis_z": -1.0}, "optim.hypothesis_z"),
 ])
 def test_bad_hypothesis_settings_are_refused(tmp_path, overrides, needle):
     with pytest.raises(ValueError, match=needle):
         as_config(tiny(str(tmp_path), **overrides))
+
+
+def test_a_clear_lead_ends_exploration_early(tmp_path):
+    """hypothesis_z=0: any lead is clear, so the race ends after the first epoch, and the later
+    epochs render the active hypothesis alone although hypothesis_epochs allows more."""
+    cache = str(tmp_path / "cache")
+    run = train(tiny(cache, epochs=3, **{**HYP, "optim.hypothesis_epochs": 3, "optim.hypothesis_z": 0.0}),
+                tmp_path / "run")
+    losses = [h["hypothesis_losses"] for h in run["history"]]
+    assert len(losses[0]) == 2 and losses[1] is None and losses[2] is None
+    assert "a clear lead: kept from now on" in (tmp_path / "run" / "train.log").read_text()

@@ -185,7 +185,7 @@ def exploring_flips(model: MVTN, cfg: TrainConfig, epoch: int) -> bool:
 
 def exploring_hypotheses(model: MVTN, cfg: TrainConfig, epoch: int) -> bool:
     """Whether training epoch ``epoch`` (0-based) renders all of G's hypotheses (selectors/hypotheses.py)."""
-    return (model.hypotheses is not None and epoch < cfg.optim.hypothesis_epochs
+    return (model.hypotheses is not None and not bool(model.hypotheses.done) and epoch < cfg.optim.hypothesis_epochs
             and epoch >= cfg.optim.selector_warmup_epochs)
 
 
@@ -265,8 +265,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
                                    f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
         if flips is not None:
             flips.record(per_shape_loss(logits.detach(), labels), flip_mask)
-        if H > 1:
-            model.hypotheses.record(per_shape_loss(logits.detach(), labels).reshape(-1, H))
+        if H > 1:  # each shape's loss under each hypothesis: G's own loss (selectors/hypotheses.py)
+            model.hypotheses.record(selector_loss(logits.detach(), labels).reshape(-1, H))
         objective = loss
         if smoothed and step % cfg.optim.smoothed_every == 0:  # G's gradient from the loss at perturbed views
             # (view_gradient.py), charged to G; on the other steps G gets no gradient and AdamW leaves it
@@ -410,12 +410,15 @@ def train(cfg, run_dir, build_model=None) -> dict:
                         say(run_dir, f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
                 hypothesis_losses = None
                 if exploring_hypotheses(model, cfg, epoch):
-                    active, hypothesis_losses = model.hypotheses.decide()
+                    active, hypothesis_losses, clear = model.hypotheses.decide(cfg.optim.hypothesis_z)
                     if active is not None:
                         model.selector.active.fill_(active)
-                        say(run_dir, f"epoch {epoch + 1}: hypotheses' mean training loss "
-                                     f"{' / '.join(f'{x:.4f}' for x in hypothesis_losses)}: hypothesis {active} active"
-                                     + (" (kept from now on)" if epoch + 1 == cfg.optim.hypothesis_epochs else ""))
+                    last = epoch + 1 == cfg.optim.hypothesis_epochs
+                    if clear or last:
+                        model.hypotheses.finish()
+                    say(run_dir, f"epoch {epoch + 1}: hypotheses' mean {cfg.optim.selector_loss} loss "
+                                 f"{' / '.join(f'{x:.4f}' for x in hypothesis_losses)}: hypothesis {active} active"
+                                 + (" (a clear lead: kept from now on)" if clear else " (kept from now on)" if last else ""))
                 train_bn = None  # bn_recalibrate_scope=eval: training's own statistics, put back after saving
                 if cfg.optim.bn_recalibrate:
                     if cfg.optim.bn_recalibrate_scope == "eval":
