@@ -51,6 +51,8 @@ def test_every_experiment_composes(name):
         assert cfg.optim.selector_grad == "smoothed" and cfg.optim.selector_loss == "centered_logit"
         assert cfg.selector.name == (
             "mvtn_poi" if name.endswith("learned") else "spherical")
+        if name.endswith("learned"):  # G aims with the measured gain (README, issue 9)
+            assert cfg.selector.poi_gain == 32.0
     elif name.startswith(("synthetic", "tradeoff")):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups
