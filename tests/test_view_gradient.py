@@ -233,6 +233,24 @@ def test_axis_views_look_down_the_cup(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+def test_axis_views_train_through_the_one_trainer(tmp_path, capsys):
+    """The diagnostic runs ``mvtn-train``'s loop with its own cameras (tilted here), end to end."""
+    import json
+    import warnings
+
+    from mvtn_exp.bench import axis_views as av
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        av.main(["--out", str(tmp_path / "run"), "--tilt", "20", "dataset=synthetic_views",
+                 f"dataset.root={tmp_path / 'cache'}", "dataset.num_per_class=[1,1,1]", "dataset.num_points=64",
+                 "views=1", "image_size=32", "epochs=1", "batch_size=4", "logger.progress=false",
+                 "logger.tensorboard=false"])
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["test_size"] == 8 and m["test_detail_seen"] == 1.0  # 20 degrees off the axis still sees it
+    assert 15.0 < m["test_detail_angle_median"] < 25.0
+
+
 def test_tilted_axis_views_keep_their_angle_and_spread_around_the_axis():
     """``axis_views --tilt``: every direction exactly ``tilt`` degrees from its axis (poles too),
     in directions that differ between shapes and between draws."""

@@ -69,7 +69,7 @@ class AxisViewsMVTN(MVTN):
     tilt: float = 0.0
     tilt_generator: torch.Generator | None = None
 
-    def select(self, batch: dict):
+    def select(self, batch: dict, all_hypotheses: bool = False):
         if "detail_axis" not in batch:
             raise ValueError("axis views need the synthetic_views detail frame (dataset=synthetic_views)")
         axis = batch["detail_axis"]
