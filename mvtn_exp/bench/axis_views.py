@@ -11,7 +11,7 @@ epochs, no augmentation): test accuracy 0.969, validation 0.48 after 2 epochs (R
 ``--tilt DEG`` moves every camera ``DEG`` degrees off the axis in a random direction around it,
 drawn anew for every batch (its own seeded generator): how precisely a learned G must aim for C
 to read the detail. With ``+experiment=synthetic_views_fixed views=1`` (48 training shapes per
-class, random pose every step, hard renderer, 20 epochs), test accuracy 0.906 / 0.708 / 0.438 at
+class, random pose every step, hard renderer, 20 epochs), test accuracy 0.906 / 0.693 / 0.396 at
 0 / 20 / 40 degrees (README, 2026-12-02).
 """
 from __future__ import annotations
