@@ -56,8 +56,8 @@ def tilted(axis: torch.Tensor, tilt_deg: float, generator: torch.Generator) -> t
     towards a uniformly random direction around its axis."""
     axis = torch.nn.functional.normalize(axis.double(), dim=1)
     r = torch.randn(axis.shape, dtype=axis.dtype, generator=generator)
-    r = r - (r * axis).sum(1, keepdim=True) * axis
-    r = torch.nn.functional.normalize(torch.where(r.norm(dim=1, keepdim=True) > 1e-9, r, torch.ones_like(r) - axis), dim=1)
+    r = torch.nn.functional.normalize(r - (r * axis).sum(1, keepdim=True) * axis, dim=1)  # a Gaussian draw is
+    # parallel to its axis with probability 0
     t = math.radians(tilt_deg)
     return math.cos(t) * axis + math.sin(t) * r
 
