@@ -30,7 +30,7 @@ POINT_ENCODER_NAMES = tuple(POINT_ENCODERS)
 BACKBONE_NAMES = tuple(BACKBONES)
 MVNET_NAMES = tuple(MULTIVIEW)
 TASKS = ("classification",)
-WARMUP_VIEWS = ("u0", "random")
+WARMUP_VIEWS = ("u0", "random", "spherical")
 SELECTOR_GRADIENTS = ("autograd", "smoothed")  # how G gets its gradient (engine/view_gradient.py)
 BN_RECALIBRATE_SCOPES = ("all", "eval")  # what the re-estimated BatchNorm statistics serve (engine/precise_bn.py)
 SELECTOR_LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
@@ -257,8 +257,14 @@ class OptimConfig:
     is clipped to ``clip_selector`` before the step. Schedule per epoch: cosine to 0 or step
     (x ``step_gamma`` every ``step_size`` epochs). ``selector_warmup_epochs``: for the first
     epochs G is frozen and C trains on ``warmup_views`` (``u0``: G's initial views; ``random``:
-    new uniform random views per shape and step), then G and C train together.
+    new uniform random views per shape and step; ``spherical``: the fixed layout of
+    ``selector.sphere``), then G and C train together. ``warmup_num_views``: how many views C
+    sees in those epochs (null: ``views``; any count with a view-pooling C, whose weights do not
+    depend on M, so C can learn from a full ring of views before G picks a few).
     ``selector_epochs``: G's learning rate is 0 from this epoch on (null: G trains to the end).
+    ``selector_beta1``: AdamW's first-moment decay for G's group (0.9, C's and AdamW's default):
+    G steps along the running mean of about 1 / (1 - beta1) steps' gradients, so a larger value
+    averages out more of the smoothed estimate's noise before G moves.
     ``selector_grad``: how G's gradient is got: ``autograd`` (the paper's: through the
     differentiable renderer) or ``smoothed`` (the gradient of the task loss smoothed over the views
     by a Gaussian of ``smoothed_sigma`` degrees, estimated from ``smoothed_pairs`` antithetic pairs
@@ -292,7 +298,9 @@ class OptimConfig:
     step_gamma: float = 0.1
     selector_warmup_epochs: int = 0
     warmup_views: str = "u0"
+    warmup_num_views: Optional[int] = None
     selector_epochs: Optional[int] = None
+    selector_beta1: float = 0.9
     selector_grad: str = "autograd"
     smoothed_pairs: int = 2
     smoothed_sigma: float = 10.0
@@ -315,8 +323,15 @@ class OptimConfig:
         at_least("optim.step_size", self.step_size, 1)
         at_least("optim.selector_warmup_epochs", self.selector_warmup_epochs, 0)
         one_of("optim.warmup_views", self.warmup_views, WARMUP_VIEWS)
+        if self.warmup_num_views is not None:
+            at_least("optim.warmup_num_views", self.warmup_num_views, 1)
+            if self.selector_warmup_epochs == 0:
+                raise ValueError(f"optim.warmup_num_views={self.warmup_num_views}: there is no warm-up; set "
+                                 "optim.selector_warmup_epochs >= 1")
         if self.selector_epochs is not None:
             at_least("optim.selector_epochs", self.selector_epochs, 0)
+        if not 0.0 <= self.selector_beta1 < 1.0:
+            raise ValueError(f"optim.selector_beta1={self.selector_beta1!r}: expected a value in [0, 1)")
         one_of("optim.selector_grad", self.selector_grad, SELECTOR_GRADIENTS)
         at_least("optim.smoothed_pairs", self.smoothed_pairs, 1)
         at_least("optim.smoothed_sigma", self.smoothed_sigma, 0.0, strict=True)
@@ -428,6 +443,10 @@ class TrainConfig:
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
                      self.optim, self.augment, self.logger):
             part.validate()
+        n_warm = self.optim.warmup_num_views
+        if n_warm is not None and n_warm != self.views and self.optim.warmup_views == "u0":
+            raise ValueError(f"optim.warmup_num_views={n_warm} with optim.warmup_views=u0: G's initial views are "
+                             f"views={self.views}; use warmup_views=spherical or random for another count")
         if self.renderer.image_size != self.image_size:
             raise ValueError(f"renderer.image_size={self.renderer.image_size} differs from image_size={self.image_size}: "
                              "set the top-level image_size")

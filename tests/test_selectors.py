@@ -421,3 +421,28 @@ def test_poi_learn_gain_reaches_the_model_from_the_config():
     from mvtn_exp.model import build_mvtn
     model = build_mvtn(as_config({"selector": {"name": "mvtn_poi", "poi_learn_gain": True}}), num_classes=3)
     assert any(p is model.selector.log_gain for p in model.parameter_groups()["selector"])
+
+
+def test_selector_beta1_is_g_groups_own_and_changes_only_gs_step():
+    from mvtn_exp.engine.trainer import as_config, make_optimizer
+    from mvtn_exp.model import build_mvtn
+    steps = {}
+    for beta1 in (0.9, 0.99):
+        torch.manual_seed(0)
+        cfg = as_config({"selector": {"name": "mvtn_spherical"}, "optim": {"selector_beta1": beta1}})
+        model = build_mvtn(cfg, num_classes=3)
+        opt, _ = make_optimizer(cfg, model)
+        betas = {g["name"]: g["betas"] for g in opt.param_groups}
+        assert betas == {"mvnet": (0.9, 0.999), "selector": (beta1, 0.999)}
+        groups = model.parameter_groups()
+        before = [p.detach().clone() for p in groups["mvnet"] + groups["selector"]]
+        for _ in range(2):  # the first step is lr-sized whatever beta1; the second differs
+            opt.zero_grad()
+            for p in groups["mvnet"] + groups["selector"]:
+                p.grad = torch.ones_like(p) if len(opt.state.get(p, {})) == 0 else -torch.ones_like(p)
+            opt.step()
+        steps[beta1] = [(p.detach() - b) for p, b in zip(groups["mvnet"] + groups["selector"], before)]
+        n_c = len(groups["mvnet"])
+    for a, b in zip(steps[0.9][:n_c], steps[0.99][:n_c]):
+        assert torch.equal(a, b)  # C's steps are untouched
+    assert any(not torch.allclose(a, b) for a, b in zip(steps[0.9][n_c:], steps[0.99][n_c:]))

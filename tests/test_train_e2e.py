@@ -12,7 +12,8 @@ import torch
 
 from mvtn_exp.engine import train
 from mvtn_exp.engine.checkpoint import CheckpointMismatch, save_atomic
-from mvtn_exp.engine.trainer import as_config
+from mvtn_exp.engine.trainer import as_config, warmup_views
+from mvtn_exp.render import layouts
 from mvtn_exp.model import build_mvtn
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -399,19 +400,34 @@ def test_learned_selector_needs_batches_of_two(cache, tmp_path):
 
 
 def test_selector_warmup_freezes_g_then_trains_it(cache, tmp_path):
-    """optim.selector_warmup_epochs: G is untouched while C warms up (on u0 or random views), then moves."""
+    """optim.selector_warmup_epochs: G is untouched while C warms up (on u0, random or 5 spherical
+    views), then moves."""
     _, model = tiny_model(cache)
     init = model.state_dict()
     sel = [f"selector.{k}" for k, _ in model.selector.named_parameters()]
-    for views in ("u0", "random"):
-        warm = train(tiny(cache, epochs=1, **{"optim.selector_warmup_epochs": 1, "optim.warmup_views": views}),
-                     tmp_path / views)
+    for views, count in (("u0", None), ("random", None), ("spherical", 5)):
+        warm = train(tiny(cache, epochs=1, **{"optim.selector_warmup_epochs": 1, "optim.warmup_views": views,
+                                              "optim.warmup_num_views": count}), tmp_path / views)
         state = torch.load(tmp_path / views / "last.pt", weights_only=False)["model"]
         assert max(float((state[k] - init[k]).abs().max()) for k in sel) == 0.0, views
         assert warm["history"][0]["grad_norm_selector"] == 0.0
     train(tiny(cache, epochs=2, **{"optim.selector_warmup_epochs": 1}), tmp_path / "after")
     state = torch.load(tmp_path / "after" / "last.pt", weights_only=False)["model"]
     assert max(float((state[k] - init[k]).abs().max()) for k in sel) > 1e-6
+
+
+def test_warmup_views_count_and_layout(cache):
+    """The warm-up views: ``optim.warmup_num_views`` of them, the spherical layout for every shape,
+    or uniform random ones; u0 keeps G's own M."""
+    batch = {"points": torch.zeros(3, 16, 3)}
+    for kind, count, M in (("spherical", 12, 12), ("random", 7, 7), ("u0", None, 2), ("spherical", None, 2)):
+        cfg, model = tiny_model(cache, **{"optim.selector_warmup_epochs": 1, "optim.warmup_views": kind,
+                                          "optim.warmup_num_views": count})
+        azim, elev, dist = warmup_views(model, batch, cfg)
+        assert azim.shape == elev.shape == dist.shape == (3, M), kind
+        if kind == "spherical":
+            ref = layouts.spherical(M, 3, cfg.selector.distance, sphere=cfg.selector.sphere)
+            assert torch.allclose(azim, ref[0]) and torch.allclose(elev, ref[1])
 
 
 def test_selector_epochs_freezes_g_afterwards(cache, tmp_path):

@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 from ..data.collate import collate_shapes
 from ..data.datasets import build_dataset
 from ..model import MVTN, build_mvtn
+from ..render import layouts
 from ..schema import TrainConfig
 from ..selectors.fixed import random_directions
 from ..selectors.hypotheses import join_views, split_images, split_views
@@ -116,7 +117,8 @@ def make_optimizer(cfg: TrainConfig, model: MVTN):
     groups = model.parameter_groups()
     params = [{"params": groups["mvnet"], "lr": cfg.optim.lr, "name": "mvnet"}]
     if groups["selector"]:
-        params.append({"params": groups["selector"], "lr": cfg.optim.lr_selector, "name": "selector"})
+        params.append({"params": groups["selector"], "lr": cfg.optim.lr_selector, "name": "selector",
+                       "betas": (cfg.optim.selector_beta1, 0.999)})
     opt = torch.optim.AdamW(params, lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, [lambda e, n=g["name"]: group_factor(cfg, n, e) for g in params])
@@ -149,12 +151,15 @@ def view_offsets(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
 
 
 def warmup_views(model: MVTN, batch: dict, cfg: TrainConfig):
-    """Views of a warm-up step (G frozen): G's initial views u0, or new uniform random views per shape."""
-    B, M = batch["points"].shape[0], cfg.views
+    """Views of a warm-up step (G frozen), each ``[B, optim.warmup_num_views or views]``: G's initial
+    views u0, new uniform random views per shape, or the fixed spherical layout."""
+    B, M = batch["points"].shape[0], cfg.optim.warmup_num_views or cfg.views
     if cfg.optim.warmup_views == "random":
         azim, elev = random_directions((B, M))
         azim, elev = azim.float().to(model.device), elev.float().to(model.device)
         return azim, elev, torch.full_like(azim, cfg.selector.distance)
+    if cfg.optim.warmup_views == "spherical":
+        return layouts.spherical(M, B, cfg.selector.distance, device=model.device, sphere=cfg.selector.sphere)
     return tuple(t.to(model.device) for t in model.selector.initial_views(B))
 
 
