@@ -12,7 +12,7 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 
 COLUMNS = ("test_acc", "test_mean_class_acc", "best_val_acc", "mean_epoch_seconds", "test_view_offset_azim",
-           "test_view_offset_elev")
+           "test_view_offset_elev", "test_view_spread", "test_view_separation")
 STATUS_FILE = "status.json"  # written by a job that failed (diverged, bad input)
 
 
@@ -100,8 +100,8 @@ def write_summary(sweep_dir) -> tuple[Path, Path]:
     aggs = aggregate(rows)
     lines = ["# Sweep summary", "", f"{len(rows)} jobs in `{sweep_dir}`.", "",
              "## Mean +- std over seeds (sample std)", "",
-             "| setting | runs | failed | test acc | mean class acc | best val acc | s/epoch | mean view offset azim (deg) | mean view offset elev (deg) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| setting | runs | failed | test acc | mean class acc | best val acc | s/epoch | mean view offset azim (deg) | mean view offset elev (deg) | view spread over shapes (deg) | nearest two views of a shape (deg) |",
+             "|---|---|---|" + "---|" * len(COLUMNS)]
     for a in aggs:
         cells = [f"{a[k]:.3f} ± {a[k + '_std']:.3f}" for k in COLUMNS]
         lines.append(f"| {a['setting']} | {a['runs']} | {a['failed']} | " + " | ".join(cells) + " |")

@@ -34,6 +34,7 @@ from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from ..viz.views import detail_angles_png
 from . import checkpoint, cost, precise_bn, seeding, view_gradient
+from .view_stats import view_stats
 from .provenance import provenance
 from .run_logger import RunLogger
 from .step_timer import StepTimer
@@ -433,7 +434,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
                                               progress=cfg.logger.progress)
                 sched.step()
                 seconds = time.perf_counter() - t0
-                offsets = view_offsets(model, val["azim"], val["elev"])
+                offsets = {**view_offsets(model, val["azim"], val["elev"]), **view_stats(val["azim"], val["elev"])}
                 detail = {f"val_{k}": v for k, v in detail_report(datasets["val"], val).items()}
                 history.append({"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
                                 "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
@@ -447,6 +448,9 @@ def train(cfg, run_dir, build_model=None) -> dict:
                                 "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
                                 "views/offset_azim": offsets["view_offset_azim"],
                                 "views/offset_elev": offsets["view_offset_elev"],
+                                "views/spread": offsets["view_spread"],
+                                **({"views/separation": offsets["view_separation"]}
+                                   if offsets["view_separation"] is not None else {}),
                                 **({"views/detail_seen": detail["val_detail_seen"]} if detail else {})}, step)
                 logger.histogram("views/azim", val["azim"], step)
                 logger.histogram("views/elev", val["elev"], step)
@@ -496,7 +500,9 @@ def train(cfg, run_dir, build_model=None) -> dict:
         "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
         "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
-        "step_seconds": timer.means(), "cost": costs, **{f"test_{k}": v for k, v in view_offsets(model, test["azim"], test["elev"]).items()},
+        "step_seconds": timer.means(), "cost": costs,
+        **{f"test_{k}": v for k, v in view_offsets(model, test["azim"], test["elev"]).items()},
+        **{f"test_{k}": v for k, v in view_stats(test["azim"], test["elev"]).items()},
         **{f"test_{k}": v for k, v in detail_report(datasets["test"], test).items()},
         "history": history, "config": cfg_dict, "provenance": origin,
     }
