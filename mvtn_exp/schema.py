@@ -33,7 +33,8 @@ TASKS = ("classification",)
 WARMUP_VIEWS = ("u0", "random", "spherical")
 SELECTOR_GRADIENTS = ("autograd", "smoothed")  # how G gets its gradient (engine/view_gradient.py)
 BN_RECALIBRATE_SCOPES = ("all", "eval")  # what the re-estimated BatchNorm statistics serve (engine/precise_bn.py)
-SELECTOR_LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
+SELECTOR_LOSSES = ("task", "centered_logit")
+HYPOTHESIS_MODES = ("separate", "pooled")  # how C sees G's hypotheses while they race (selectors/hypotheses.py)  # what G minimises (tasks/classification.py: selector_loss_fn)
 OPTIMIZERS = ("adamw",)
 SCHEDULES = ("cosine", "step")
 
@@ -286,7 +287,10 @@ class OptimConfig:
     ``hypothesis_epochs``: with ``selector.hypotheses`` H > 1, at most this many first epochs render
     all H sets of views, train C on each, and keep the set with the lowest loss; earlier once it
     leads every other by ``hypothesis_z`` paired standard errors (null: never earlier;
-    ``selectors/hypotheses.py``)."""
+    ``selectors/hypotheses.py``). ``hypothesis_mode``: while they race, C classifies each
+    hypothesis's M views as a shape of its own (``separate``) or all H x M views of a shape pooled
+    as one shape, like a run at H x M views, each hypothesis then scored by C alone on its own M
+    views in eval mode (``pooled``)."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -310,6 +314,7 @@ class OptimConfig:
     flip_epochs: int = 10
     hypothesis_epochs: int = 0
     hypothesis_z: Optional[float] = 3.0
+    hypothesis_mode: str = "separate"
     bn_recalibrate: int = 0
     bn_recalibrate_scope: str = "eval"
 
@@ -344,6 +349,7 @@ class OptimConfig:
             raise ValueError(f"optim.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
         at_least("optim.flip_epochs", self.flip_epochs, 1)
         at_least("optim.hypothesis_epochs", self.hypothesis_epochs, 0)
+        one_of("optim.hypothesis_mode", self.hypothesis_mode, HYPOTHESIS_MODES)
         if self.hypothesis_z is not None:
             at_least("optim.hypothesis_z", self.hypothesis_z, 0.0)
         at_least("optim.bn_recalibrate", self.bn_recalibrate, 0)

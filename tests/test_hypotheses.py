@@ -135,6 +135,7 @@ def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
     ({**HYP, "optim.flip_explore": 0.5}, "choose one way to explore"),
     ({**HYP, "selector.hypotheses": 0}, "selector.hypotheses"),
     ({**HYP, "optim.hypothesis_z": -1.0}, "optim.hypothesis_z"),
+    ({**HYP, "optim.hypothesis_mode": "mixed"}, "optim.hypothesis_mode"),
 ])
 def test_bad_hypothesis_settings_are_refused(tmp_path, overrides, needle):
     with pytest.raises(ValueError, match=needle):
@@ -150,3 +151,33 @@ def test_a_clear_lead_ends_exploration_early(tmp_path):
     losses = [h["hypothesis_losses"] for h in run["history"]]
     assert len(losses[0]) == 2 and losses[1] is None and losses[2] is None
     assert "a clear lead: kept from now on" in (tmp_path / "run" / "train.log").read_text()
+
+
+def test_pooled_race_scores_each_hypothesis_alone(tmp_path):
+    """hypothesis_mode=pooled: C trains on all H x M views of a shape as one, and each hypothesis's
+    race loss is C (eval mode) on that hypothesis's M views alone."""
+    from mvtn_exp.engine.trainer import hypothesis_losses
+    from mvtn_exp.model import build_mvtn
+    from mvtn_exp.tasks import classification
+    cfg = as_config(tiny(str(tmp_path), **{**HYP, "optim.hypothesis_mode": "pooled"}))
+    torch.manual_seed(0)
+    model = build_mvtn(cfg, num_classes=3).train()
+    B, H, M = 4, 2, cfg.views
+    images, labels = torch.rand(B, H * M, 3, 16, 16), torch.tensor([0, 1, 2, 0])
+    loss = classification.selector_loss_fn("task", cfg.task)
+    got = hypothesis_losses(model, None, images, labels, H, 1, loss)
+    assert model.mvnet.training  # train mode restored after the eval pass
+    model.eval()
+    for h in range(H):
+        alone, _ = model.mvnet(images[:, h * M:(h + 1) * M])
+        assert torch.allclose(got[:, h], loss(alone, labels), atol=1e-6)
+
+
+def test_pooled_exploring_run_trains_and_decides(tmp_path):
+    cache = str(tmp_path / "cache")
+    pooled = train(tiny(cache, epochs=2, **{**HYP, "optim.hypothesis_mode": "pooled"}), tmp_path / "pooled")
+    first, second = pooled["history"]
+    assert len(first["hypothesis_losses"]) == 2 and second["hypothesis_losses"] is None
+    assert first["hypothesis_active"] == min(range(2), key=lambda h: first["hypothesis_losses"][h])
+    separate = train(tiny(cache, epochs=1, **HYP), tmp_path / "separate")
+    assert abs(separate["history"][0]["train_loss"] - first["train_loss"]) > 1e-6

@@ -195,6 +195,18 @@ def exploring_hypotheses(model: MVTN, cfg: TrainConfig, epoch: int) -> bool:
             and epoch >= cfg.optim.selector_warmup_epochs)
 
 
+def hypothesis_losses(model: MVTN, logits: torch.Tensor, images: torch.Tensor, labels: torch.Tensor, H: int, S: int,
+                      selector_loss) -> torch.Tensor:
+    """Each shape's G loss under each of the H hypotheses, ``[B, H]``. Separate (S = H): read off
+    the training logits ``[B * H, classes]``; pooled (S = 1): C in eval mode, without gradients, on
+    each hypothesis's M views alone (``images [B, H * M, 3, h, w]``)."""
+    if S == H:
+        return selector_loss(logits.detach(), labels).reshape(-1, H)
+    with torch.no_grad(), view_gradient.eval_mode(model.mvnet):
+        alone, _ = model.mvnet(split_images(images.detach(), H))
+    return selector_loss(alone, labels.repeat_interleave(H)).reshape(-1, H)
+
+
 def flip_generator(seed: int, step: int) -> torch.Generator:
     """The flip draws' own generator for global step ``step`` (a stream apart from the smoothed noise)."""
     return view_gradient.noise_generator(int(seed) + 7_919, step)
@@ -241,8 +253,10 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     learning = bool(groups["selector"]) and not warm and not frozen
     smoothed = learning and cfg.optim.selector_grad == "smoothed"
     flips = model.polarity if exploring_flips(model, cfg, epoch) else None
-    # H > 1: all of G's hypotheses are rendered, and C classifies each as a shape of its own
+    # H > 1: all of G's hypotheses are rendered; C classifies each as a shape of its own (S = H:
+    # hypothesis_mode=separate) or all H x M views of a shape pooled as one (S = 1: pooled)
     H = model.hypotheses.hypotheses if exploring_hypotheses(model, cfg, epoch) else 1
+    S = H if cfg.optim.hypothesis_mode == "separate" else 1
     per_shape_loss = classification.loss_fn(cfg.task, reduction="none")
     selector_loss = classification.selector_loss_fn(cfg.optim.selector_loss, cfg.task)
     bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=None if cfg.logger.progress else True)
@@ -254,15 +268,15 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
                 batch = augment(batch, cfg)
         if batch is None:
             break
-        labels = batch["labels"].to(model.device).repeat_interleave(H)  # [B * H]
+        labels = batch["labels"].to(model.device).repeat_interleave(S)  # [B * S]
         with timer.stage("selector"), torch.set_grad_enabled(not frozen):
             views = warmup_views(model, batch, cfg) if warm else model.select(batch, all_hypotheses=H > 1)
             if flips is not None:  # some views from their antipodes (selectors/polarity.py)
                 views, flip_mask = flips.explore(views, cfg.optim.flip_explore, flip_generator(cfg.seed, step))
         with timer.stage("render"), torch.set_grad_enabled(not smoothed):
             images = model.render(batch, *views)  # smoothed: R is not differentiated
-            if H > 1:
-                images = split_images(images, H)  # [B * H, M, 3, h, w]
+            if S > 1:
+                images = split_images(images, S)  # [B * H, M, 3, h, w]
         with timer.stage("backbone"):
             logits, _ = model.mvnet(images)
             loss = loss_fn(logits, labels)
@@ -272,16 +286,17 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
         if flips is not None:
             flips.record(per_shape_loss(logits.detach(), labels), flip_mask)
         if H > 1:  # each shape's loss under each hypothesis: G's own loss (selectors/hypotheses.py)
-            model.hypotheses.record(selector_loss(logits.detach(), labels).reshape(-1, H))
+            with timer.stage("selector"):
+                model.hypotheses.record(hypothesis_losses(model, logits, images, labels, H, S, selector_loss))
         objective = loss
         if smoothed and step % cfg.optim.smoothed_every == 0:  # G's gradient from the loss at perturbed views
             # (view_gradient.py), charged to G; on the other steps G gets no gradient and AdamW leaves it
             with timer.stage("selector"):
                 g = view_gradient.smoothed_view_gradient(
-                    view_gradient.model_render_loss(model, batch, labels, selector_loss, hypotheses=H),
-                    split_views(views, H) if H > 1 else views,
+                    view_gradient.model_render_loss(model, batch, labels, selector_loss, hypotheses=S),
+                    split_views(views, S) if S > 1 else views,
                     cfg.optim.smoothed_pairs, cfg.optim.smoothed_sigma, view_gradient.noise_generator(cfg.seed, step))
-                objective = loss + view_gradient.surrogate(views, *(join_views(g, H) if H > 1 else g))
+                objective = loss + view_gradient.surrogate(views, *(join_views(g, S) if S > 1 else g))
         with timer.stage("optimizer"):
             opt.zero_grad(set_to_none=True)
         timer.backward(objective, views, images)
