@@ -13,8 +13,7 @@ from ..schema import EvalConfig, TrainConfig
 from ..tasks import classification
 from . import checkpoint, eval_modes
 from .provenance import provenance
-from .trainer import as_config, config_dict, eval_loader, view_offsets, write_results
-from .view_stats import view_stats
+from .trainer import as_config, config_dict, eval_loader, view_report, write_results
 
 
 def config_from_checkpoint(state: dict, path) -> TrainConfig:
@@ -63,7 +62,7 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
     t0 = time.perf_counter()
     res = classification.evaluate(model, loader, len(classes), desc=ecfg.split, progress=ecfg.progress)
     seconds = {"classification": time.perf_counter() - t0}
-    offsets = {**view_offsets(model, res["azim"], res["elev"]), **view_stats(res["azim"], res["elev"])}
+    offsets = view_report(model, res["azim"], res["elev"])
     metrics = {"test_acc": res["acc"], "test_mean_class_acc": res["mean_class_acc"], "test_loss": res["loss"],
                "test_per_class_acc": dict(zip(classes, res["per_class_acc"])), "confusion_matrix": res["confusion"],
                "classes": classes, "test_size": res["n"], "split": ecfg.split, "ckpt": str(ecfg.ckpt),

@@ -151,6 +151,11 @@ def view_offsets(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
             "view_offset_elev": float((elev - e0.cpu()).abs().mean())}
 
 
+def view_report(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
+    """``view_offsets`` and ``view_stats`` (spread over shapes, separation within a shape) of views ``[N, M]``."""
+    return {**view_offsets(model, azim, elev), **view_stats(azim, elev)}
+
+
 def warmup_views(model: MVTN, batch: dict, cfg: TrainConfig):
     """Views of a warm-up step (G frozen), each ``[B, optim.warmup_num_views or views]``: G's initial
     views u0, new uniform random views per shape, or the fixed spherical layout."""
@@ -449,7 +454,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
                                               progress=cfg.logger.progress)
                 sched.step()
                 seconds = time.perf_counter() - t0
-                offsets = {**view_offsets(model, val["azim"], val["elev"]), **view_stats(val["azim"], val["elev"])}
+                offsets = view_report(model, val["azim"], val["elev"])
                 detail = {f"val_{k}": v for k, v in detail_report(datasets["val"], val).items()}
                 history.append({"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
                                 "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
@@ -516,8 +521,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
         "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
         "step_seconds": timer.means(), "cost": costs,
-        **{f"test_{k}": v for k, v in view_offsets(model, test["azim"], test["elev"]).items()},
-        **{f"test_{k}": v for k, v in view_stats(test["azim"], test["elev"]).items()},
+        **{f"test_{k}": v for k, v in view_report(model, test["azim"], test["elev"]).items()},
         **{f"test_{k}": v for k, v in detail_report(datasets["test"], test).items()},
         "history": history, "config": cfg_dict, "provenance": origin,
     }

@@ -12,11 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-
-def directions(azim: Tensor, elev: Tensor) -> Tensor:
-    """Degrees ``[N, M]`` -> unit camera directions ``[N, M, 3]`` (float64, Y-up, azimuth 0 on +Z)."""
-    a, e = torch.deg2rad(azim.double()), torch.deg2rad(elev.double())
-    return torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1)
+from ..data.synthetic_views import camera_positions
 
 
 def _angle(u: Tensor, v: Tensor) -> Tensor:
@@ -28,7 +24,7 @@ def view_stats(azim: Tensor, elev: Tensor) -> dict:
     """``{"view_spread", "view_separation"}`` (degrees; module docstring) of views ``[N, M]``."""
     if azim.numel() == 0:
         return {"view_spread": 0.0, "view_separation": None}
-    d = directions(azim, elev)  # [N, M, 3]
+    d = torch.from_numpy(camera_positions(azim.double().cpu().numpy(), elev.double().cpu().numpy(), 1.0))  # [N, M, 3]
     mean = d.mean(0, keepdim=True)
     norm = mean.norm(dim=-1, keepdim=True)
     # a slot whose directions cancel out (mean ~ 0) has no mean direction: 90 deg is its spread
