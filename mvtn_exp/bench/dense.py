@@ -47,10 +47,9 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
         # group face-views by image; the stable sort keeps them in ascending fv inside each image
         order = torch.sort(img, stable=True).indices
         fv, img = fv.index_select(0, order), img.index_select(0, order)
-        x0, y0, z0, x1, y1, z1, x2, y2, z2 = pf.cols.index_select(1, fv)
-        table = torch.stack(mesh_raster.face_planes(x0, y0, x1, y1, x2, y2) + [1.0 / z0, 1.0 / z1, 1.0 / z2], 1)
+        table = mesh_raster.face_table(pf.cols.index_select(1, fv))  # [18, F]
         px, py = tiles.pixel_centres(torch.arange(HW, device=dev), H, W, table.dtype)
-        px, py = px[None, :, None], py[None, :, None]  # [1, HW, 1]
+        px, py = px[None, :], py[None, :]  # [1, HW]
         num_images = pf.num_images
         best_depth = torch.full((num_images, HW), float("inf"), dtype=table.dtype, device=dev)
         best_fv = torch.full((num_images, HW), -1, dtype=torch.long, device=dev)
@@ -61,10 +60,12 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
             bd, bf = best_depth[b], best_fv[b]
             for s in range(start, start + n, step):
                 e = min(s + step, start + n)
-                t = table[s:e, None, :]  # [Fc, 1, 12]
-                lam = t[..., 0:9:3] * px + t[..., 1:9:3] * py + t[..., 2:9:3]  # [Fc, HW, 3]
-                inside = (lam >= 0).all(-1)
-                depth = 1.0 / (lam * t[..., 9:12]).sum(-1).clamp(min=1e-12)
+                t = table[:, s:e, None]  # [18, Fc, 1]
+                # the search's arithmetic (mesh_raster.barycentrics / inverse_depth), broadcast to [Fc, HW]
+                lam = [torch.addcmul(torch.addcmul(t[3 * k + 2], t[3 * k], px), t[3 * k + 1], py) for k in range(3)]
+                inside = (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
+                iz = t[mesh_raster.TABLE_INV_Z:mesh_raster.TABLE_INV_Z + 3]
+                depth = 1.0 / torch.addcmul(torch.addcmul(lam[0] * iz[0], lam[1], iz[1]), lam[2], iz[2]).clamp(min=1e-12)
                 del lam
                 depth = torch.where(inside, depth, torch.full_like(depth, float("inf")))
                 dmin, arg = depth.min(0)  # first (smallest fv) index among equal minima

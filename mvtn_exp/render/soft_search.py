@@ -27,8 +27,8 @@ import torch
 import torch.nn.functional as F
 
 from . import tiles
-from .mesh_raster import (SMALL_BOX_HARD, ProjectedFaces, face_boxes, face_fragments, face_planes,
-                          point_triangle_sqdist, row_spans)
+from .mesh_raster import (SMALL_BOX_HARD, ProjectedFaces, barycentrics, face_boxes, face_fragments, face_table,
+                          inverse_depth, row_spans, table_planes, triangle_sqdist)
 
 # soft search: a candidate whose depth logit trails the best covering face of a pixel by more than
 # this much has a colour weight below exp(-DEPTH_WINDOW) of that face's (and log p <= 0 cannot help it)
@@ -70,15 +70,14 @@ class SoftRanking:
 @dataclass
 class _Faces:
     """The searched face-views: ids ``fv`` and images ``[Fs]``, corner rows ``cols`` ``[9, Fs]``,
-    planes + inverse corner depths ``table`` ``[Fs, 12]``, corners ``xy`` ``[Fs, 3, 2]``, the
-    largest depth logit (nearest corner) ``zl_max`` ``[Fs]``."""
+    ``mesh_raster.face_table`` ``[18, Fs]``, its planes (list of 9 ``[Fs]``), the largest depth
+    logit (nearest corner) ``zl_max`` ``[Fs]``."""
 
     fv: torch.Tensor
     image: torch.Tensor
     cols: torch.Tensor
-    planes: list
     table: torch.Tensor
-    xy: torch.Tensor
+    planes: list
     zl_max: torch.Tensor
 
 
@@ -90,11 +89,9 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
         fv = torch.nonzero(pf.alive & (dilated.sizes() > 0)).squeeze(1)
         image = pf.image_of(fv)
         cols = pf.cols.index_select(1, fv)
-        x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
-        planes = face_planes(x0, y0, x1, y1, x2, y2)
-        faces = _Faces(fv, image, cols, planes, torch.stack(planes + [1.0 / z0, 1.0 / z1, 1.0 / z2], 1),
-                       torch.stack([x0, y0, x1, y1, x2, y2], 1).view(-1, 3, 2),
-                       ranking.depth_logit(image, torch.minimum(torch.minimum(z0, z1), z2)))
+        table = face_table(cols)
+        faces = _Faces(fv, image, cols, table, table_planes(table),
+                       ranking.depth_logit(image, torch.minimum(torch.minimum(cols[2], cols[5]), cols[8])))
         dilated = tiles.PixelBoxes(image, *(t.index_select(0, fv) for t in (dilated.j0, dilated.j1, dilated.i0, dilated.i1)))
         num_pixels = pf.num_images * H * W
         chunks = dict(H=H, W=W, tile_size=tile_size, max_candidates=max_candidates, dtype=cols.dtype)
@@ -112,13 +109,16 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
         # a slot only for faces whose colour weight is within exp(-depth_window) of the pixel's largest
         least = torch.full((num_pixels,), float("inf"), dtype=score.dtype, device=score.device).scatter_reduce_(0, pix, score, "amin")
         slot_ok = score <= least.index_select(0, pix) + ranking.depth_window
-        rest_ok = torch.cat([torch.ones_like(pix1, dtype=torch.bool), ~full.index_select(0, pix2)])
+        # fully covered pixels keep no rest: their coverage is within coverage_tol of 1 whatever
+        # the other faces add (``rest_log_miss`` counts them with their covering faces' bound)
+        rest_ok = ~full.index_select(0, pix)
         prim = torch.cat([prim1, prim2])
         # only the few slot candidates are ranked (every pixel's best is one of them); the others
         # join the rest unsorted
         ok = torch.nonzero(slot_ok).squeeze(1)
         sel = tiles.select_nearest(pix.index_select(0, ok), score.index_select(0, ok), prim.index_select(0, ok), K,
-                                   num_pixels, keep_rest=True)
+                                   num_pixels, keep_rest=True, rest_mask=rest_ok.index_select(0, ok))
+        sel.base_log_miss = torch.where(full.index_select(0, sel.pix), miss.index_select(0, sel.pix), 0.0)
         other = torch.nonzero(~slot_ok & rest_ok).squeeze(1)
         sel.rest_pix = torch.cat([sel.rest_pix, pix.index_select(0, other)])
         sel.rest_prim = torch.cat([sel.rest_prim, prim.index_select(0, other)])
@@ -134,20 +134,27 @@ def _covering(faces: _Faces, ranking: SoftRanking, chunks: dict):
     boxes = face_boxes(faces.cols, faces.image, 0.0, H, W)
     span = row_spans(faces.planes, boxes, 0.0, SMALL_BOX_HARD, W)
     out = []
+    # per face and edge: 1 / |grad lambda_k| (lambda_k times it is the distance to the edge line), or
+    # -1 for interior edges, which do not bound coverage
+    grad = [torch.sqrt(faces.planes[3 * k] ** 2 + faces.planes[3 * k + 1] ** 2) for k in range(3)]
+    inv_grad = torch.stack([1.0 / g for g in grad])
+    if ranking.interior is not None:
+        inv_grad = torch.where(ranking.interior.index_select(0, faces.fv).t(), -1.0, inv_grad)
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=SMALL_BOX_HARD, **chunks):
         cand = tiles.concat(parts)
-        t = faces.table.index_select(0, cand.prim)
-        lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]
-        keep = torch.nonzero((lam >= 0).all(1)).squeeze(1)
-        lam, t, prim = lam.index_select(0, keep), t.index_select(0, keep), cand.prim.index_select(0, keep)
-        depth = 1.0 / (lam * t[:, 9:12]).sum(1).clamp(min=1e-12)
-        dl = lam / torch.sqrt(t[:, 0:9:3] ** 2 + t[:, 1:9:3] ** 2)  # [C, 3] distances to the edge lines
-        fvk = faces.fv.index_select(0, prim)
-        if ranking.interior is not None:
-            dl = torch.where(ranking.interior.index_select(0, fvk), torch.full_like(dl, 1e2), dl)
-        dmin = dl.amin(1).clamp(max=1e2)
-        out.append((cand.pix.index_select(0, keep), fvk, ranking.depth_logit(faces.image.index_select(0, prim), depth),
-                    F.logsigmoid(-dmin * dmin / ranking.sigma)))
+        lam = barycentrics(faces.table, cand.prim, cand.x, cand.y)
+        keep = torch.nonzero((lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)).squeeze(1)
+        prim = cand.prim.index_select(0, keep)
+        lam = [l.index_select(0, keep) for l in lam]
+        depth = 1.0 / inverse_depth(faces.table, prim, lam).clamp(min=1e-12)
+        dmin = None
+        for k in range(3):  # distance to the nearest non-interior edge line
+            ig = inv_grad[k].index_select(0, prim)
+            dl = torch.where(ig < 0, 1e2, lam[k] * ig)
+            dmin = dl if dmin is None else torch.minimum(dmin, dl)
+        dmin = dmin.clamp(max=1e2)
+        out.append((cand.pix.index_select(0, keep), faces.fv.index_select(0, prim),
+                    ranking.depth_logit(faces.image.index_select(0, prim), depth), F.logsigmoid(-dmin * dmin / ranking.sigma)))
     return _cat(out, 4, faces)
 
 
@@ -169,15 +176,16 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
         if hidden_below is not None:
             idx = torch.nonzero(faces.zl_max.index_select(0, cand.prim) >= hidden_below.index_select(0, cand.pix)).squeeze(1)
             cand = tiles.Candidates(*(getattr(cand, k).index_select(0, idx) for k in ("prim", "pix", "x", "y")))
-        t = faces.table.index_select(0, cand.prim)
-        lam = t[:, 0:9:3] * cand.x[:, None] + t[:, 1:9:3] * cand.y[:, None] + t[:, 2:9:3]
-        inside = (lam >= 0).all(1)
-        fo = faces.xy.index_select(0, cand.prim)
-        sqd = point_triangle_sqdist(fo[..., 0], fo[..., 1], cand.x, cand.y)
+        lam = barycentrics(faces.table, cand.prim, cand.x, cand.y)
+        inside = (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
+        sqd = triangle_sqdist(faces.table, cand.prim, cand.x, cand.y)
         keep = (inside | (sqd <= radius**2)) if keep_inside else (~inside & (sqd <= radius**2))
         keep = torch.nonzero(keep).squeeze(1)
-        lam, t, prim = lam.index_select(0, keep).clamp(min=0), t.index_select(0, keep), cand.prim.index_select(0, keep)
-        depth = 1.0 / ((lam / lam.sum(1, keepdim=True)) * t[:, 9:12]).sum(1).clamp(min=1e-12)
+        prim = cand.prim.index_select(0, keep)
+        # outside the triangle: depth at the nearest point (negative barycentrics clamped)
+        lam = [l.index_select(0, keep).clamp(min=0) for l in lam]
+        total = lam[0] + lam[1] + lam[2]
+        depth = total / inverse_depth(faces.table, prim, lam).clamp(min=1e-12 * total)
         fvk, pix = faces.fv.index_select(0, prim), cand.pix.index_select(0, keep)
         if keep_inside:
             out.append((pix, fvk, depth, depth))
@@ -237,10 +245,14 @@ def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, slots_log_miss: torc
     (``slots_log_miss`` ``[P]``, their ``sum log(1 - p)``) leave more than
     ``ranking.coverage_tol`` uncovered need the rest (silhouette rims, occlusion contours); there
     the rest is recomputed differentiably, flat (one face per entry). Elsewhere it is 0, which
-    changes coverage by less than ``coverage_tol``.
+    changes coverage by less than ``coverage_tol``. Pixels the search found fully covered
+    (``sel.base_log_miss``) get their covering faces' conservative bound instead, a constant: their
+    coverage, exact or not, is within ``coverage_tol`` of 1.
     """
     P = len(sel.pix)
     out = torch.zeros(P, dtype=pf.vert_xy.dtype, device=pf.vert_xy.device)
+    if sel.base_log_miss is not None:
+        out = sel.base_log_miss.to(out.dtype)
     if sel.rest_pix is None or len(sel.rest_pix) == 0:
         return out
     with torch.no_grad():

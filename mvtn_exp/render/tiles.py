@@ -48,7 +48,9 @@ class Selection:
 
     pix: ``[P]`` flat pixel index, ascending; prim: ``[P, K]`` primitive index, -1 in unused slots.
     rest_pix, rest_prim: ``[R]`` the candidates that did not get a slot (only when asked for:
-    soft coverage counts them); most: the largest number of candidates any pixel had (0 if empty).
+    soft coverage counts them); most: the largest number of candidates any pixel had (0 if empty);
+    base_log_miss: ``[P]`` soft coverage the search counted itself and left out of the slots and the
+    rest, as a constant ``sum log(1 - p)`` (fully covered pixels: their covering faces' bound).
     """
 
     pix: torch.Tensor
@@ -56,6 +58,7 @@ class Selection:
     rest_pix: torch.Tensor | None = None
     rest_prim: torch.Tensor | None = None
     most: int = 0
+    base_log_miss: torch.Tensor | None = None
 
     def occupied(self) -> torch.Tensor:
         """Flat indices into ``prim.view(-1)`` of the used slots ``[S]``, ascending."""
