@@ -238,3 +238,56 @@ def test_soft_camera_gradient_follows_finite_differences(shading, min_cos):
     cos = float(torch.dot(auto, fd) / (auto.norm() * fd.norm()))
     assert cos > min_cos, (cos, auto, fd)
     assert 0.3 < float(auto.norm() / fd.norm()) < 3.0
+
+
+def _signed_sqdist_autograd(xy, corners, px, py, interior):
+    """Reference: the signed distance written plainly, differentiated by autograd."""
+    x, y = xy[corners][..., 0], xy[corners][..., 1]  # [N, 3]
+
+    def seg(a, b):
+        ex, ey = x[:, b] - x[:, a], y[:, b] - y[:, a]
+        t = (((px - x[:, a]) * ex + (py - y[:, a]) * ey) / (ex * ex + ey * ey)).clamp(0, 1)
+        return (px - x[:, a] - t * ex) ** 2 + (py - y[:, a] - t * ey) ** 2
+
+    def side(a, b):
+        return (x[:, b] - x[:, a]) * (py - y[:, a]) - (y[:, b] - y[:, a]) * (px - x[:, a])
+
+    area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (y[:, 1] - y[:, 0]) * (x[:, 2] - x[:, 0])
+    d = torch.stack([seg(1, 2), seg(2, 0), seg(0, 1)], 1)
+    lam = torch.stack([side(1, 2), side(2, 0), side(0, 1)], 1) / area[:, None]
+    inside = (lam >= 0).all(1)
+    d_in = torch.where(interior, torch.full_like(d, 1e4), d).min(1).values
+    return torch.where(inside, -d_in, d.min(1).values)
+
+
+def test_signed_sqdist_matches_autograd_reference_in_value_and_gradient():
+    from mvtn_exp.render.edge_distance import FAR_SQ, signed_sqdist
+
+    g = torch.Generator().manual_seed(3)
+    V, N = 40, 400
+    xy = torch.randn(V, 2, dtype=torch.float64, generator=g)
+    corners = torch.stack([torch.randperm(V, generator=g)[:3] for _ in range(N)])
+    # half the points inside their triangle (a random convex combination), half anywhere
+    w = torch.rand(N, 3, dtype=torch.float64, generator=g)
+    w = w / w.sum(1, keepdim=True)
+    inner = (w[:, :, None] * xy[corners]).sum(1)
+    far = torch.randn(N, 2, dtype=torch.float64, generator=g)
+    p = torch.where((torch.arange(N) % 2 == 0)[:, None], inner, far)
+    interior = torch.rand(N, 3, generator=g) < 0.3
+    interior[:4] = True  # some inside points with every edge interior: -FAR_SQ, no gradient
+    a = xy.clone().requires_grad_(True)
+    b = xy.clone().requires_grad_(True)
+    got = signed_sqdist(a, corners, p[:, 0], p[:, 1], interior)
+    ref = _signed_sqdist_autograd(b, corners, p[:, 0], p[:, 1], interior)
+    assert (got < 0).sum() >= N // 3 and (got > 0).sum() >= N // 3  # both sides are exercised
+    assert (got[:4] == -FAR_SQ).any()
+    torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    weights = torch.randn(N, dtype=torch.float64, generator=g)
+    (got * weights).sum().backward()
+    (ref * weights).sum().backward()
+    torch.testing.assert_close(a.grad, b.grad, rtol=1e-8, atol=1e-10)
+    valid = torch.arange(N) % 5 != 0
+    masked = signed_sqdist(xy, corners, p[:, 0], p[:, 1], interior, valid)
+    assert torch.all(masked[~valid] == FAR_SQ) and torch.equal(masked[valid], got.detach()[valid])
+    assert torch.autograd.gradcheck(lambda v: signed_sqdist(v, corners[:60], p[:60, 0], p[:60, 1], interior[:60]),
+                                    (xy.clone().requires_grad_(True),))

@@ -11,16 +11,14 @@ Faces crossing the near plane are culled, not clipped (documented limitation).
 """
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
 
 import torch
 
 from . import tiles
+from .edge_distance import _edge, segment_sqdist, signed_sqdist
 from .ops import take
 
-# far beyond any on-screen squared NDC distance: "no boundary edge near this pixel"
-FAR_SQ = 1.0e4
 # hard mode: face boxes of at most this many pixels are tested whole, larger ones go row by row
 SMALL_BOX_HARD = 2
 
@@ -93,11 +91,6 @@ class Fragments:
     bary: torch.Tensor | None
     zbuf: torch.Tensor | None
     dist: torch.Tensor | None
-
-
-def _edge(ax, ay, bx, by, px, py):
-    """Twice the signed area of (a, b, p): positive when p is left of a->b."""
-    return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
 
 
 def area_eps(dtype: torch.dtype, H: int, W: int) -> float:
@@ -174,9 +167,9 @@ def triangle_sqdist(table: torch.Tensor, prim: torch.Tensor, x: torch.Tensor, y:
     """Squared NDC distance ``[C]`` from the points x, y ``[C]`` to the triangles ``prim`` (their edges;
     callers tell inside from outside by the barycentrics)."""
     c = [table[TABLE_CORNERS + r].index_select(0, prim) for r in range(6)]
-    d = _segment_sqdist(c[2], c[3], c[4], c[5], x, y)
-    d = torch.minimum(d, _segment_sqdist(c[4], c[5], c[0], c[1], x, y))
-    return torch.minimum(d, _segment_sqdist(c[0], c[1], c[2], c[3], x, y))
+    d = segment_sqdist(c[2], c[3], c[4], c[5], x, y)
+    d = torch.minimum(d, segment_sqdist(c[4], c[5], c[0], c[1], x, y))
+    return torch.minimum(d, segment_sqdist(c[0], c[1], c[2], c[3], x, y))
 
 
 def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float, small_box: int, W: int):
@@ -261,28 +254,6 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
         return tiles.merge(picks, K, pf.cols.device)
 
 
-def _segment_sqdist(ax, ay, bx, by, px, py):
-    """Squared distance from p to segment ab (all ``[...]``); safe for a == b."""
-    ex, ey = bx - ax, by - ay
-    ll = (ex * ex + ey * ey).clamp(min=1e-30)
-    t = (((px - ax) * ex + (py - ay) * ey) / ll).clamp(0, 1)
-    dx, dy = px - ax - t * ex, py - ay - t * ey
-    return dx * dx + dy * dy
-
-
-def edge_sqdists(fx, fy, px, py) -> torch.Tensor:
-    """Squared distances to the three edges (v1v2, v2v0, v0v1), stacked on the last dim."""
-    return torch.stack([
-        _segment_sqdist(fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2], px, py),
-        _segment_sqdist(fx[..., 2], fy[..., 2], fx[..., 0], fy[..., 0], px, py),
-        _segment_sqdist(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], px, py),
-    ], -1)
-
-
-def point_triangle_sqdist(fx, fy, px, py) -> torch.Tensor:
-    return edge_sqdists(fx, fy, px, py).min(-1).values
-
-
 def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, need_bary: bool,
                    need_dist: bool, interior_edge: torch.Tensor | None, need_depth: bool = True) -> Fragments:
     """Differentiable barycentrics / depth / signed distance for the selected (pixel, face) pairs.
@@ -290,8 +261,8 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
     interior_edge: ``[F*M, 3]`` bool, True where an edge is shared with a neighbour facing the same
     way in that view; such edges are ignored by the inside distance (no wireframe in soft
     silhouettes: the coverage of a closed surface does not dip at its internal edges).
-    need_depth: False with ``need_bary=False`` gives the distances alone (``zbuf`` None): the
-    barycentrics are then only signs, taken without autograd (soft coverage of the rest faces).
+    need_depth: False with ``need_bary=False`` gives the distances alone (``zbuf`` None; soft
+    coverage of the rest faces). Distances come from ``edge_distance.signed_sqdist`` (its own backward).
     """
     valid = sel.prim >= 0
     if not (need_bary or need_dist):
@@ -301,28 +272,23 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
     px, py = tiles.pixel_centres(sel.pix, H, W, pf.cols.dtype)
     px, py = px[:, None], py[:, None]
     vv = pf.corners_of(fv)  # [P, K, 3] vertex-view ids
+    dist = None
+    if need_dist:
+        dist = signed_sqdist(pf.vert_xy, vv.reshape(-1, 3), px.expand_as(valid).reshape(-1), py.expand_as(valid).reshape(-1),
+                             None if interior_edge is None else take(interior_edge, fv).reshape(-1, 3),
+                             valid.reshape(-1)).view(valid.shape)
+    if not (need_bary or need_depth):
+        return Fragments(sel.pix, sel.prim, valid, None, None, dist)
     xy = take(pf.vert_xy, vv)  # [P, K, 3, 2]
     fx, fy = xy[..., 0], xy[..., 1]
     a = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2])
     a = torch.where(a.abs() > 1e-30, a, torch.ones_like(a))  # empty slots only (real faces: culled if ~0)
-    lean = not (need_bary or need_depth)
-    with torch.no_grad() if lean else contextlib.nullcontext():
-        l0 = _edge(fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2], px, py) / a
-        l1 = _edge(fx[..., 2], fy[..., 2], fx[..., 0], fy[..., 0], px, py) / a
-        l2 = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], px, py) / a
-        lam = torch.stack([l0, l1, l2], -1)
+    l0 = _edge(fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2], px, py) / a
+    l1 = _edge(fx[..., 2], fy[..., 2], fx[..., 0], fy[..., 0], px, py) / a
+    l2 = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], px, py) / a
+    lam = torch.stack([l0, l1, l2], -1)
     with torch.no_grad():
         inside = (lam >= 0).all(-1)
-    dist = None
-    if need_dist:
-        d = edge_sqdists(fx, fy, px, py)
-        outside_d = d.min(-1).values
-        if interior_edge is not None:
-            d = torch.where(interior_edge[fv], torch.full_like(d, FAR_SQ), d)
-        dist = torch.where(inside, -d.min(-1).values, outside_d)
-        dist = torch.where(valid, dist, torch.full_like(dist, FAR_SQ))
-    if lean:
-        return Fragments(sel.pix, sel.prim, valid, None, None, dist)
     # outside the triangle (soft edges) attributes come from the nearest point of the triangle
     lam = torch.where(inside.unsqueeze(-1), lam, lam.clamp(min=0))
     lam = lam / lam.sum(-1, keepdim=True).clamp(min=1e-12)
