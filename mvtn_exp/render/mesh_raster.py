@@ -17,7 +17,7 @@ import torch
 
 from . import tiles
 from .edge_distance import _edge, segment_sqdist, signed_sqdist
-from .ops import take
+from .ops import sum3, take
 
 # hard mode: face boxes of at most this many pixels are tested whole, larger ones go row by row
 SMALL_BOX_HARD = 2
@@ -291,9 +291,9 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
         inside = (lam >= 0).all(-1)
     # outside the triangle (soft edges) attributes come from the nearest point of the triangle
     lam = torch.where(inside.unsqueeze(-1), lam, lam.clamp(min=0))
-    lam = lam / lam.sum(-1, keepdim=True).clamp(min=1e-12)
+    lam = lam / sum3(lam).clamp(min=1e-12)
     zinv = lam / take(pf.vert_z, vv).clamp(min=1e-12)
-    zsum = zinv.sum(-1).clamp(min=1e-12)
+    zsum = sum3(zinv).squeeze(-1).clamp(min=1e-12)
     zbuf = torch.where(valid, 1.0 / zsum, torch.zeros_like(zsum))
     bary = zinv / zsum.unsqueeze(-1) if need_bary else None
     return Fragments(sel.pix, sel.prim, valid, bary, zbuf, dist)

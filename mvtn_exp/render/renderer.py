@@ -16,7 +16,7 @@ from ..data.shapes import Meshes, PointClouds
 from . import lod, mesh_raster, point_raster, shading, soft_search
 from .cameras import Cameras, camera_to_ndc, to_camera_packed
 from .config import RendererConfig
-from .ops import scatter_rows, take
+from .ops import scatter_rows, take, weighted3
 from .topology import edge_neighbours
 
 
@@ -232,8 +232,8 @@ class MultiViewRenderer(nn.Module):
         if c.shading == "smooth":
             f = torch.div(fv, M, rounding_mode="floor")
             vn = torch.zeros_like(verts).index_add(0, faces.reshape(-1), fn.repeat_interleave(3, 0))
-            normals = (frag.bary[..., None] * take(vn, take(faces, f))).sum(-2)
-            points = (frag.bary[..., None] * take(tri, f)).sum(-2)
+            normals = weighted3(frag.bary, take(vn, take(faces, f)))
+            points = weighted3(frag.bary, take(tri, f))
             return shade(fv, normals, points)
         # flat: one colour per face and view; shade every face-view once when there are fewer of
         # them than (pixel, slot) pairs, else shade per pair (same numbers either way)

@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .ops import dot3, normalize3
+
 NEG = -1.0e30  # log-weight of an empty slot (finite: no inf - inf in the backward pass)
 
 
@@ -24,18 +26,18 @@ def phong(normals, points, camera_pos, light_dir, color, *, ambient: float, diff
     color: albedo in [0, 1]. Two-sided lighting flips normals that face away from the viewer
     (ModelNet meshes have inconsistent winding).
     """
-    n = F.normalize(normals, dim=-1, eps=1e-12)
+    n = normalize3(normals)
     to_cam = camera_pos if points is None else camera_pos - points
-    v = F.normalize(to_cam, dim=-1, eps=1e-12)
+    v = normalize3(to_cam)
     if two_sided:
-        flip = torch.where((n * v).sum(-1, keepdim=True).detach() < 0, -1.0, 1.0).to(n.dtype)
+        flip = torch.where(dot3(n, v).detach() < 0, -1.0, 1.0).to(n.dtype)
         n = n * flip
-    ndl = (n * light_dir).sum(-1, keepdim=True)
+    ndl = dot3(n, light_dir)
     shade = ambient + diffuse * ndl.clamp(min=0)
     rgb = color * shade
     if specular > 0:
         r = 2 * ndl * n - light_dir
-        spec = (r * v).sum(-1, keepdim=True).clamp(min=0) ** shininess
+        spec = dot3(r, v).clamp(min=0) ** shininess
         rgb = rgb + specular * spec * (ndl > 0).to(n.dtype)
     return rgb.clamp(0, 1)
 
