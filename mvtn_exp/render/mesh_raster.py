@@ -17,7 +17,7 @@ import torch
 
 from . import tiles
 from .edge_distance import _edge, segment_sqdist, signed_sqdist
-from .ops import sum3, take
+from .ops import take
 
 # hard mode: face boxes of at most this many pixels are tested whole, larger ones go row by row
 SMALL_BOX_HARD = 2
@@ -279,21 +279,22 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
                              valid.reshape(-1)).view(valid.shape)
     if not (need_bary or need_depth):
         return Fragments(sel.pix, sel.prim, valid, None, None, dist)
-    xy = take(pf.vert_xy, vv)  # [P, K, 3, 2]
-    fx, fy = xy[..., 0], xy[..., 1]
-    a = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2])
+    X = take(pf.vert_xy[:, 0], vv).unbind(-1)  # corner x, y, each [P, K]
+    Y = take(pf.vert_xy[:, 1], vv).unbind(-1)
+    a = _edge(X[0], Y[0], X[1], Y[1], X[2], Y[2])
     a = torch.where(a.abs() > 1e-30, a, torch.ones_like(a))  # empty slots only (real faces: culled if ~0)
-    l0 = _edge(fx[..., 1], fy[..., 1], fx[..., 2], fy[..., 2], px, py) / a
-    l1 = _edge(fx[..., 2], fy[..., 2], fx[..., 0], fy[..., 0], px, py) / a
-    l2 = _edge(fx[..., 0], fy[..., 0], fx[..., 1], fy[..., 1], px, py) / a
-    lam = torch.stack([l0, l1, l2], -1)
+    lam = [_edge(X[1], Y[1], X[2], Y[2], px, py) / a,
+           _edge(X[2], Y[2], X[0], Y[0], px, py) / a,
+           _edge(X[0], Y[0], X[1], Y[1], px, py) / a]
     with torch.no_grad():
-        inside = (lam >= 0).all(-1)
-    # outside the triangle (soft edges) attributes come from the nearest point of the triangle
-    lam = torch.where(inside.unsqueeze(-1), lam, lam.clamp(min=0))
-    lam = lam / sum3(lam).clamp(min=1e-12)
-    zinv = lam / take(pf.vert_z, vv).clamp(min=1e-12)
-    zsum = sum3(zinv).squeeze(-1).clamp(min=1e-12)
+        inside = (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
+    # outside the triangle (soft edges) attributes come from the nearest point of the triangle;
+    # in components (``ops.dot``): no size-3 reductions
+    lam = [torch.where(inside, l, l.clamp(min=0)) for l in lam]
+    total = (lam[0] + lam[1] + lam[2]).clamp(min=1e-12)
+    z = take(pf.vert_z, vv).clamp(min=1e-12).unbind(-1)
+    zinv = [l / total / zk for l, zk in zip(lam, z)]
+    zsum = (zinv[0] + zinv[1] + zinv[2]).clamp(min=1e-12)
     zbuf = torch.where(valid, 1.0 / zsum, torch.zeros_like(zsum))
-    bary = zinv / zsum.unsqueeze(-1) if need_bary else None
+    bary = torch.stack([zk / zsum for zk in zinv], -1) if need_bary else None
     return Fragments(sel.pix, sel.prim, valid, bary, zbuf, dist)

@@ -11,14 +11,15 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from .ops import dot3, normalize3
+from .ops import dot, normalized, scale
 
 NEG = -1.0e30  # log-weight of an empty slot (finite: no inf - inf in the backward pass)
 
 
 def phong(normals, points, camera_pos, light_dir, color, *, ambient: float, diffuse: float,
           specular: float, shininess: float, two_sided: bool) -> torch.Tensor:
-    """Phong shading of surface samples. Shapes broadcast over ``[..., 3]``.
+    """Phong shading of surface samples. All ``[..., 3]`` of one shape (computed in components,
+    see ``ops.dot``).
 
     normals: surface normals (any length); points: world positions, or None to use the
     direction to the camera position from the origin (distant viewer);
@@ -26,20 +27,20 @@ def phong(normals, points, camera_pos, light_dir, color, *, ambient: float, diff
     color: albedo in [0, 1]. Two-sided lighting flips normals that face away from the viewer
     (ModelNet meshes have inconsistent winding).
     """
-    n = normalize3(normals)
-    to_cam = camera_pos if points is None else camera_pos - points
-    v = normalize3(to_cam)
+    n = normalized(normals.unbind(-1))
+    cam = camera_pos.unbind(-1)
+    v = normalized(cam if points is None else tuple(c - p for c, p in zip(cam, points.unbind(-1))))
+    light = light_dir.unbind(-1)
     if two_sided:
-        flip = torch.where(dot3(n, v).detach() < 0, -1.0, 1.0).to(n.dtype)
-        n = n * flip
-    ndl = dot3(n, light_dir)
+        n = scale(n, torch.where(dot(n, v).detach() < 0, -1.0, 1.0).to(n[0].dtype))
+    ndl = dot(n, light)
     shade = ambient + diffuse * ndl.clamp(min=0)
-    rgb = color * shade
+    rgb = [c * shade for c in color.unbind(-1)]
     if specular > 0:
-        r = 2 * ndl * n - light_dir
-        spec = dot3(r, v).clamp(min=0) ** shininess
-        rgb = rgb + specular * spec * (ndl > 0).to(n.dtype)
-    return rgb.clamp(0, 1)
+        r = tuple(2 * ndl * nc - lc for nc, lc in zip(n, light))
+        spec = specular * dot(r, v).clamp(min=0) ** shininess * (ndl > 0).to(ndl.dtype)
+        rgb = [c + spec for c in rgb]
+    return torch.stack(rgb, -1).clamp(0, 1)
 
 
 def hard_blend(colors: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
