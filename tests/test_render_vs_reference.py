@@ -7,7 +7,7 @@ import torch
 import reference
 from conftest import random_triangles
 from mvtn_exp.data.shapes import Meshes, PointClouds
-from mvtn_exp.render import mesh_raster, point_raster
+from mvtn_exp.render import mesh_raster, point_raster, tiles
 from mvtn_exp.render.renderer import MultiViewRenderer
 
 VIEWS = (torch.tensor([[0.0, 70.0, 200.0]]), torch.tensor([[10.0, -35.0, 89.0]]))
@@ -155,3 +155,39 @@ def test_soft_edges_match_unlimited_k(monkeypatch, shading, open_half, slots):
         return
     assert (out.alpha - ref.alpha).abs().max() < 1e-5
     assert cov_off == 0 and rgb_off < 0.01
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ring_enumeration_skips_only_pixels_inside_the_triangle(dtype):
+    """The soft search's near pass enumerates a ring (``row_spans(hole=...)``): against the whole
+    dilated triangle it may drop only pixels whose centre is inside the face."""
+    g = torch.Generator().manual_seed(5)
+    n, H = 300, 64
+    c = (torch.rand(n, 1, 2, generator=g, dtype=dtype) * 2 - 1) * 0.8
+    xy = c + (torch.rand(n, 3, 2, generator=g, dtype=dtype) * 2 - 1) * 0.4  # many faces of 5-25 px
+    xy[:20, 1, 1] = xy[:20, 0, 1] + 1e-4  # near-horizontal edges
+    xy[20:40, 2, 1] = xy[20:40, 0, 1]  # exactly horizontal edges
+    z = torch.ones(n, 3, dtype=dtype)
+    cols = torch.stack([xy[:, 0, 0], xy[:, 0, 1], z[:, 0], xy[:, 1, 0], xy[:, 1, 1], z[:, 1],
+                        xy[:, 2, 0], xy[:, 2, 1], z[:, 2]])
+    table = mesh_raster.face_table(cols)
+    radius = 1.5 * 2 / H
+    boxes = mesh_raster.face_boxes(cols, torch.zeros(n, dtype=torch.long), radius, H, H)
+    planes = mesh_raster.table_planes(table)
+    ys = table[mesh_raster.TABLE_CORNERS + 1:mesh_raster.TABLE_CORNERS + 6:2]
+
+    def pairs(hole):
+        span = mesh_raster.row_spans(planes, boxes, radius, tiles.SMALL_BOX, H, hole=hole)
+        out = [tiles.concat(p) for p in tiles.candidate_chunks(boxes, H, H, 32, 1 << 22, dtype, span)]
+        cand = out[0]
+        return cand, set(zip(cand.prim.tolist(), cand.pix.tolist()))
+
+    whole, all_pairs = pairs(None)
+    _, ring = pairs((ys.amin(0), ys.amax(0)))
+    assert ring <= all_pairs
+    dropped = all_pairs - ring
+    assert len(dropped) > len(all_pairs) // 10  # the faces' insides are a real share of the work
+    prim = torch.tensor([p for p, _ in dropped])
+    x, y = tiles.pixel_centres(torch.tensor([q for _, q in dropped]), H, H, dtype)
+    lam = mesh_raster.barycentrics(table, prim, x, y)
+    assert bool(((lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)).all())

@@ -172,7 +172,14 @@ def triangle_sqdist(table: torch.Tensor, prim: torch.Tensor, x: torch.Tensor, y:
     return torch.minimum(d, segment_sqdist(c[0], c[1], c[2], c[3], x, y))
 
 
-def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float, small_box: int, W: int):
+# the hole of a ring (``row_spans(hole=...)``): pixels at least this far (NDC) inside every edge of
+# the triangle, far above the rounding of the span arithmetic while edges are not near-horizontal
+HOLE_MARGIN = 1e-3
+HOLE_MAX_SLOPE = 1e2
+
+
+def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float, small_box: int, W: int,
+              hole: tuple[torch.Tensor, torch.Tensor] | None = None):
     """``span(prim, y) -> (j0, j1)`` for ``tiles.candidate_chunks``: per face and box row, the pixel
     columns within ``radius`` (NDC) of the triangle. planes: ``face_planes`` of the boxes' faces.
 
@@ -180,6 +187,11 @@ def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float
     x = s_k y + t_k, from the left when A_k > 0, from the right when A_k < 0; edges with A_k = 0
     are horizontal and never bound a row inside the face's box. Only faces whose box has more
     than ``small_box`` pixels go row by row.
+
+    hole: the faces' own vertical extent (ymin, ymax) ``[N]``: then ``span`` also returns the
+    columns (h0, h1) surely inside the triangle (``HOLE_MARGIN`` inside every edge; empty for
+    faces with a near-horizontal side edge), which a search for the faces *near* a pixel but not
+    covering it can skip: it then enumerates a ring, not the whole dilated triangle.
     """
     n = len(boxes.j0)
     big = torch.nonzero(boxes.sizes() > small_box).squeeze(1)
@@ -188,22 +200,43 @@ def row_spans(planes: list[torch.Tensor], boxes: tiles.PixelBoxes, radius: float
     A = torch.stack([planes[k].index_select(0, big) for k in (0, 3, 6)], 1)
     Bp = torch.stack([planes[k].index_select(0, big) for k in (1, 4, 7)], 1)
     Cp = torch.stack([planes[k].index_select(0, big) for k in (2, 5, 8)], 1)
-    Cp = Cp + (radius + 1e-5) * torch.sqrt(A * A + Bp * Bp)
+    norm = torch.sqrt(A * A + Bp * Bp)
     safe = torch.where(A == 0, torch.ones_like(A), A)
-    slope, icpt = -Bp / safe, -Cp / safe
+    slope = -Bp / safe
     inf = torch.full_like(A, float("inf"))
     zero = torch.zeros_like(A)
+
+    def intercepts(r):  # left bounds of the three edges, then right bounds, moved out by r
+        icpt = -(Cp + r * norm) / safe
+        return [torch.where(A > 0, icpt, -inf), torch.where(A < 0, icpt, inf)]
+
+    left, right = intercepts(radius + 1e-5)
     # per face: left bounds (slope, intercept) of the three edges, then right bounds; one contiguous
     # row each, so a box row gathers 1-D values (see ``face_table``)
-    rowtab = torch.cat([torch.where(A > 0, slope, zero), torch.where(A > 0, icpt, -inf),
-                        torch.where(A < 0, slope, zero), torch.where(A < 0, icpt, inf)], 1).t().contiguous()  # [12, Fbig]
+    rowtab = torch.cat([torch.where(A > 0, slope, zero), left, torch.where(A < 0, slope, zero), right], 1).t().contiguous()
+    if hole is not None:
+        hl, hr = intercepts(-HOLE_MARGIN)
+        steep = ((slope.abs() <= HOLE_MAX_SLOPE) | (A == 0)).all(1)
+        ylo = torch.where(steep, hole[0].index_select(0, big) + HOLE_MARGIN, inf[:, 0])
+        holetab = torch.cat([hl, hr, ylo[:, None], hole[1].index_select(0, big)[:, None] - HOLE_MARGIN], 1).t().contiguous()
+
+    def bounds(g, lo_rows, hi_rows, yy):
+        lo = torch.maximum(torch.maximum(torch.addcmul(lo_rows[0], g[0], yy), torch.addcmul(lo_rows[1], g[1], yy)),
+                           torch.addcmul(lo_rows[2], g[2], yy))
+        hi = torch.minimum(torch.minimum(torch.addcmul(hi_rows[0], g[6], yy), torch.addcmul(hi_rows[1], g[7], yy)),
+                           torch.addcmul(hi_rows[2], g[8], yy))
+        return lo, hi
 
     def span(p, yy):
         r = row_of.index_select(0, p)
         g = [rowtab[k].index_select(0, r) for k in range(12)]
-        lo = torch.maximum(torch.maximum(torch.addcmul(g[3], g[0], yy), torch.addcmul(g[4], g[1], yy)), torch.addcmul(g[5], g[2], yy))
-        hi = torch.minimum(torch.minimum(torch.addcmul(g[9], g[6], yy), torch.addcmul(g[10], g[7], yy)), torch.addcmul(g[11], g[8], yy))
-        return tiles.columns(lo, hi, W)
+        j0, j1 = tiles.columns(*bounds(g, g[3:6], g[9:12], yy), W)
+        if hole is None:
+            return j0, j1
+        h = [holetab[k].index_select(0, r) for k in range(8)]
+        lo, hi = bounds(g, h[0:3], h[3:6], yy)
+        lo = torch.where((yy < h[6]) | (yy > h[7]), float("inf"), lo)  # rows outside the face: no hole
+        return (j0, j1, *tiles.columns(lo, hi, W))
 
     return span
 

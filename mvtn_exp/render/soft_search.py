@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from . import tiles
-from .mesh_raster import (SMALL_BOX_HARD, ProjectedFaces, barycentrics, face_boxes, face_fragments, face_table,
+from .mesh_raster import (SMALL_BOX_HARD, TABLE_CORNERS, ProjectedFaces, barycentrics, face_boxes, face_fragments, face_table,
                           inverse_depth, row_spans, table_planes, triangle_sqdist)
 
 # soft search: a candidate whose depth logit trails the best covering face of a pixel by more than
@@ -168,7 +168,12 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
     if hidden_below is not None:
         hidden = _hidden_faces(faces, boxes, hidden_below, chunks["H"], W)
         boxes = tiles.PixelBoxes(boxes.image, boxes.j0, torch.where(hidden, boxes.j0 - 1, boxes.j1), boxes.i0, boxes.i1)
-    span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W)
+    # pairs that cover the pixel are pass 1's: skip each triangle's inside, enumerate a ring
+    hole = None
+    if not keep_inside:
+        ys = faces.table[TABLE_CORNERS + 1:TABLE_CORNERS + 6:2]
+        hole = (ys.amin(0), ys.amax(0))
+    span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W, hole=hole)
     out = []
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
         cand = tiles.concat(parts)

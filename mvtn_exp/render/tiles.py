@@ -109,7 +109,8 @@ def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype
 
     span: optional ``span(prim [R], y [R]) -> (j0, j1)``: per box row at NDC height y, the
     inclusive pixel columns the primitive can reach there (see ``columns``); it trims large boxes
-    to the primitive's own shape. Boxes of at most ``small_box`` pixels skip it and are enumerated
+    to the primitive's own shape. It may return ``(j0, j1, h0, h1)``: columns h0..h1 are then
+    skipped (a hole, ``mesh_raster.row_spans``). Boxes of at most ``small_box`` pixels skip it and are enumerated
     whole: there the row pass would cost more than the candidates it saves.
     owner: maps box index -> primitive index (tile-clipped boxes); identity when None.
     """
@@ -150,9 +151,15 @@ def _enumerate_rows(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, 
     b = sel.index_select(0, rown)
     p = b if owner is None else owner.index_select(0, b)
     y = 1 - (2 * i + 1).to(dtype) / H
-    j0, j1 = span(p, y)
-    j0 = torch.maximum(boxes.j0.index_select(0, b), j0)
-    j1 = torch.minimum(boxes.j1.index_select(0, b), j1)
+    cols = span(p, y)
+    j0 = torch.maximum(boxes.j0.index_select(0, b), cols[0])
+    j1 = torch.minimum(boxes.j1.index_select(0, b), cols[1])
+    if len(cols) == 4:  # a hole (h0, h1) to skip: each row becomes two runs, the second empty without one
+        h0, h1 = cols[2], cols[3]
+        has = h0 <= h1
+        j0 = torch.stack([j0, torch.where(has, torch.maximum(j0, h1 + 1), j1 + 1)], 1).view(-1)
+        j1 = torch.stack([torch.where(has, torch.minimum(j1, h0 - 1), j1), j1], 1).view(-1)
+        b, p, i, y = (t.repeat_interleave(2) for t in (b, p, i, y))
     n = (j1 - j0 + 1).clamp(min=0)
     own = torch.repeat_interleave(torch.arange(len(n), device=dev), n)
     j = (j0 - (torch.cumsum(n, 0) - n)).index_select(0, own) + torch.arange(len(own), device=dev)
