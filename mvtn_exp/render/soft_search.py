@@ -5,17 +5,17 @@ Two passes, both without autograd:
 1. covering faces (``_covering``): each face's undilated row spans, the pixels it covers; from them
    every pixel's best (largest) depth logit and a conservative bound on how fully its covering
    faces alone cover it (distances to the edge lines never exceed those to the edges);
-2. faces within the blur radius that do not cover the pixel (``_near``): the dilated row spans,
-   where a candidate from a face whose nearest corner lies more than ``depth_window`` (in logit)
+2. faces within the blur radius that do not cover the pixel (``_near``): the dilated row spans
+   less each face's inside (a ring; ``mesh_raster.row_spans(hole=...)``), where a candidate from a face whose nearest corner lies more than ``depth_window`` (in logit)
    behind the best covering face of a fully covered pixel is dropped before anything else is
    computed (hidden: it adds neither colour nor coverage); the others are tested exactly against
    the blur radius.
 
 Then per pixel the K candidates of largest blend logit ``log p + zinv / gamma`` (the K largest
 softmax weights, only those within ``depth_window`` of the largest) hold the slots; every other
-candidate comes back as the rest (``Selection.rest_pix`` / ``rest_prim``), except outside faces of
-fully covered pixels, so that coverage counts every face within the blur radius whatever K is
-(``rest_log_miss``). ``SoftRanking.by_depth`` keeps PyTorch3D's choice instead: the K nearest by
+candidate comes back as the rest (``Selection.rest_pix`` / ``rest_prim``), so that coverage counts
+every face within the blur radius whatever K is (``rest_log_miss``), except in fully covered
+pixels: there the covering faces' bound stands for all of them (``Selection.base_log_miss``). ``SoftRanking.by_depth`` keeps PyTorch3D's choice instead: the K nearest by
 depth among the faces within the blur radius, coverage from those K alone.
 """
 from __future__ import annotations
