@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 
 from ..render import mesh_raster, tiles
+from ..render.edge_distance import covers
 
 DEFAULT_CHUNK_PAIRS = 1 << 22
 
@@ -63,7 +64,7 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
                 t = table[:, s:e, None]  # [18, Fc, 1]
                 # the search's arithmetic (mesh_raster.barycentrics / inverse_depth), broadcast to [Fc, HW]
                 lam = [torch.addcmul(torch.addcmul(t[3 * k + 2], t[3 * k], px), t[3 * k + 1], py) for k in range(3)]
-                inside = (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
+                inside = covers(lam)
                 iz = t[mesh_raster.TABLE_INV_Z:mesh_raster.TABLE_INV_Z + 3]
                 depth = 1.0 / torch.addcmul(torch.addcmul(lam[0] * iz[0], lam[1], iz[1]), lam[2], iz[2]).clamp(min=1e-12)
                 del lam

@@ -23,9 +23,27 @@ FAR_SQ = 1.0e4
 EDGES = ((1, 2), (2, 0), (0, 1))
 
 
-def _edge(ax, ay, bx, by, px, py):
+def edge_function(ax, ay, bx, by, px, py):
     """Twice the signed area of (a, b, p): positive when p is left of a->b."""
     return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+
+
+def triangle_area2(X, Y):
+    """Twice the signed area of triangles given as corner lists ``X, Y`` (3 x ``[...]``); an
+    exactly zero area (only empty slots: real zero-area faces are culled) becomes 1."""
+    area = edge_function(X[0], Y[0], X[1], Y[1], X[2], Y[2])
+    return torch.where(area.abs() > 1e-30, area, torch.ones_like(area))
+
+
+def barycentric_signs(X, Y, px, py) -> list:
+    """Screen barycentrics ``[lambda_0, lambda_1, lambda_2]`` of p in triangles ``X, Y`` (differentiable)."""
+    area = triangle_area2(X, Y)
+    return [edge_function(X[a], Y[a], X[b], Y[b], px, py) / area for a, b in EDGES]
+
+
+def covers(lam: list) -> torch.Tensor:
+    """True where all three barycentrics are >= 0 (the point is inside or on the triangle)."""
+    return (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
 
 
 def nearest_on_segment(ax, ay, bx, by, px, py):
@@ -45,48 +63,45 @@ def segment_sqdist(ax, ay, bx, by, px, py):
 
 class _SignedSqDist(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, vert_xy, corners, px, py, interior, valid):
-        with torch.no_grad():
-            xy = vert_xy.detach()
-            vx, vy = xy[:, 0].contiguous(), xy[:, 1].contiguous()
-            ids = [corners[:, k].contiguous() for k in range(3)]
-            X = [vx.index_select(0, i) for i in ids]
-            Y = [vy.index_select(0, i) for i in ids]
-            area = _edge(X[0], Y[0], X[1], Y[1], X[2], Y[2])
-            area = torch.where(area.abs() > 1e-30, area, torch.ones_like(area))
-            inside = None
-            d, t, rx, ry = [], [], [], []
-            for k, (a, b) in enumerate(EDGES):
-                # barycentric k has the sign of the edge function of edge k over the area
-                lk = _edge(X[a], Y[a], X[b], Y[b], px, py) / area
-                inside = lk >= 0 if inside is None else inside & (lk >= 0)
-                tk, rxk, ryk = nearest_on_segment(X[a], Y[a], X[b], Y[b], px, py)
-                d.append(torch.addcmul(rxk * rxk, ryk, ryk))
-                t.append(tk)
-                rx.append(rxk)
-                ry.append(ryk)
-            # outside: the nearest of the three edges; inside: of the edges that are not interior
-            d_in = d if interior is None else [torch.where(interior[:, k], FAR_SQ, d[k]) for k in range(3)]
-            d_use = [torch.where(inside, d_in[k], d[k]) for k in range(3)]
-            best = torch.zeros_like(ids[0], dtype=torch.uint8)
-            dmin = d_use[0]
-            for k in (1, 2):
-                closer = d_use[k] < dmin
-                best = torch.where(closer, k, best)
-                dmin = torch.where(closer, d_use[k], dmin)
-            sign = torch.where(inside, -1.0, 1.0).to(dmin.dtype)
-            dist = sign * dmin
-            flat = dmin >= FAR_SQ  # inside with every edge interior: a constant
-            if valid is not None:
-                dist = torch.where(valid, dist, FAR_SQ)
-                flat = flat | ~valid
-            sign = torch.where(flat, 0.0, sign)
+    def forward(ctx, vert_xy, corners, px, py, interior, valid):  # runs without autograd
+        vx, vy = vert_xy[:, 0].contiguous(), vert_xy[:, 1].contiguous()
+        ids = [corners[:, k].contiguous() for k in range(3)]
+        X = [vx.index_select(0, i) for i in ids]
+        Y = [vy.index_select(0, i) for i in ids]
+        area = triangle_area2(X, Y)
+        inside = None
+        d, t, rx, ry = [], [], [], []
+        for a, b in EDGES:
+            # barycentric k has the sign of the edge function of edge k over the area
+            lk = edge_function(X[a], Y[a], X[b], Y[b], px, py) / area
+            inside = lk >= 0 if inside is None else inside & (lk >= 0)
+            tk, rxk, ryk = nearest_on_segment(X[a], Y[a], X[b], Y[b], px, py)
+            d.append(torch.addcmul(rxk * rxk, ryk, ryk))
+            t.append(tk)
+            rx.append(rxk)
+            ry.append(ryk)
+        # outside: the nearest of the three edges; inside: of the edges that are not interior
+        d_in = d if interior is None else [torch.where(interior[:, k], FAR_SQ, d[k]) for k in range(3)]
+        d_use = [torch.where(inside, d_in[k], d[k]) for k in range(3)]
+        best = torch.zeros_like(ids[0], dtype=torch.uint8)
+        dmin = d_use[0]
+        for k in (1, 2):
+            closer = d_use[k] < dmin
+            best = torch.where(closer, k, best)
+            dmin = torch.where(closer, d_use[k], dmin)
+        sign = torch.where(inside, -1.0, 1.0).to(dmin.dtype)
+        dist = sign * dmin
+        flat = dmin >= FAR_SQ  # inside with every edge interior: a constant
+        if valid is not None:
+            dist = torch.where(valid, dist, FAR_SQ)
+            flat = flat | ~valid
+        sign = torch.where(flat, 0.0, sign)
 
-            def pick(vals):
-                return torch.where(best == 0, vals[0], torch.where(best == 1, vals[1], vals[2]))
+        def pick(vals):
+            return torch.where(best == 0, vals[0], torch.where(best == 1, vals[1], vals[2]))
 
-            a_id = pick([ids[1], ids[2], ids[0]])
-            b_id = pick([ids[2], ids[0], ids[1]])
+        a_id = pick([ids[a] for a, _ in EDGES])
+        b_id = pick([ids[b] for _, b in EDGES])
         ctx.save_for_backward(a_id, b_id, pick(t), pick(rx), pick(ry), sign)
         ctx.num_verts = vert_xy.shape[0]
         return dist

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from . import tiles
-from .edge_distance import _edge, segment_sqdist, signed_sqdist
+from .edge_distance import barycentric_signs, covers, edge_function, segment_sqdist, signed_sqdist
 from .ops import take
 
 # hard mode: face boxes of at most this many pixels are tested whole, larger ones go row by row
@@ -105,7 +105,7 @@ def cull(cols: torch.Tensor, *, znear: float, cull_backfaces: bool, H: int, W: i
     """
     with torch.no_grad():
         x0, y0, z0, x1, y1, z1, x2, y2, z2 = cols
-        area2 = _edge(x0, y0, x1, y1, x2, y2)
+        area2 = edge_function(x0, y0, x1, y1, x2, y2)
         alive = (z0 >= znear) & (z1 >= znear) & (z2 >= znear)
         alive &= area2.abs() > area_eps(cols.dtype, H, W)
         if cull_backfaces:
@@ -120,7 +120,7 @@ def face_planes(x0, y0, x1, y1, x2, y2) -> list[torch.Tensor]:
     Inputs are ``[N]`` corner coordinates; returns [A0, B0, C0, A1, B1, C1, A2, B2, C2], each ``[N]``.
     Faces must have non-zero area (culled otherwise).
     """
-    inv = 1.0 / _edge(x0, y0, x1, y1, x2, y2)
+    inv = 1.0 / edge_function(x0, y0, x1, y1, x2, y2)
     out = []
     for (ax, ay), (bx, by) in (((x1, y1), (x2, y2)), ((x2, y2), (x0, y0)), ((x0, y0), (x1, y1))):
         ex, ey = (bx - ax) * inv, (by - ay) * inv
@@ -280,7 +280,7 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
         for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, SMALL_BOX_HARD):
             cand = tiles.concat(parts)
             lam = barycentrics(table, cand.prim, cand.x, cand.y)
-            keep = torch.nonzero((lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)).squeeze(1)
+            keep = torch.nonzero(covers(lam)).squeeze(1)
             prim = cand.prim.index_select(0, keep)
             depth = 1.0 / inverse_depth(table, prim, [l.index_select(0, keep) for l in lam]).clamp(min=1e-12)
             picks.append(tiles.select_nearest(cand.pix.index_select(0, keep), depth, fv.index_select(0, prim), K, num_pixels))
@@ -314,13 +314,9 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
         return Fragments(sel.pix, sel.prim, valid, None, None, dist)
     X = take(pf.vert_xy[:, 0], vv).unbind(-1)  # corner x, y, each [P, K]
     Y = take(pf.vert_xy[:, 1], vv).unbind(-1)
-    a = _edge(X[0], Y[0], X[1], Y[1], X[2], Y[2])
-    a = torch.where(a.abs() > 1e-30, a, torch.ones_like(a))  # empty slots only (real faces: culled if ~0)
-    lam = [_edge(X[1], Y[1], X[2], Y[2], px, py) / a,
-           _edge(X[2], Y[2], X[0], Y[0], px, py) / a,
-           _edge(X[0], Y[0], X[1], Y[1], px, py) / a]
+    lam = barycentric_signs(X, Y, px, py)
     with torch.no_grad():
-        inside = (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
+        inside = covers(lam)
     # outside the triangle (soft edges) attributes come from the nearest point of the triangle;
     # in components (``ops.dot``): no size-3 reductions
     lam = [torch.where(inside, l, l.clamp(min=0)) for l in lam]

@@ -6,17 +6,18 @@ Two passes, both without autograd:
    every pixel's best (largest) depth logit and a conservative bound on how fully its covering
    faces alone cover it (distances to the edge lines never exceed those to the edges);
 2. faces within the blur radius that do not cover the pixel (``_near``): the dilated row spans
-   less each face's inside (a ring; ``mesh_raster.row_spans(hole=...)``), where a candidate from a face whose nearest corner lies more than ``depth_window`` (in logit)
-   behind the best covering face of a fully covered pixel is dropped before anything else is
-   computed (hidden: it adds neither colour nor coverage); the others are tested exactly against
-   the blur radius.
+   less each face's inside (a ring; ``mesh_raster.row_spans(hole=...)``), where a candidate from
+   a face whose nearest corner lies more than ``depth_window`` (in logit) behind the best covering
+   face of a fully covered pixel is dropped before anything else is computed (hidden: it adds
+   neither colour nor coverage); the others are tested exactly against the blur radius.
 
 Then per pixel the K candidates of largest blend logit ``log p + zinv / gamma`` (the K largest
 softmax weights, only those within ``depth_window`` of the largest) hold the slots; every other
 candidate comes back as the rest (``Selection.rest_pix`` / ``rest_prim``), so that coverage counts
 every face within the blur radius whatever K is (``rest_log_miss``), except in fully covered
-pixels: there the covering faces' bound stands for all of them (``Selection.base_log_miss``). ``SoftRanking.by_depth`` keeps PyTorch3D's choice instead: the K nearest by
-depth among the faces within the blur radius, coverage from those K alone.
+pixels: there the covering faces' bound stands for all of them (``Selection.base_log_miss``).
+``SoftRanking.by_depth`` keeps PyTorch3D's choice instead: the K nearest by depth among the faces
+within the blur radius, coverage from those K alone.
 """
 from __future__ import annotations
 
@@ -27,8 +28,9 @@ import torch
 import torch.nn.functional as F
 
 from . import tiles
-from .mesh_raster import (SMALL_BOX_HARD, TABLE_CORNERS, ProjectedFaces, barycentrics, face_boxes, face_fragments, face_table,
-                          inverse_depth, row_spans, table_planes, triangle_sqdist)
+from .edge_distance import covers
+from .mesh_raster import (SMALL_BOX_HARD, TABLE_CORNERS, ProjectedFaces, barycentrics, face_boxes, face_fragments,
+                          face_table, inverse_depth, row_spans, table_planes, triangle_sqdist)
 
 # soft search: a candidate whose depth logit trails the best covering face of a pixel by more than
 # this much has a colour weight below exp(-DEPTH_WINDOW) of that face's (and log p <= 0 cannot help it)
@@ -143,7 +145,7 @@ def _covering(faces: _Faces, ranking: SoftRanking, chunks: dict):
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=SMALL_BOX_HARD, **chunks):
         cand = tiles.concat(parts)
         lam = barycentrics(faces.table, cand.prim, cand.x, cand.y)
-        keep = torch.nonzero((lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)).squeeze(1)
+        keep = torch.nonzero(covers(lam)).squeeze(1)
         prim = cand.prim.index_select(0, keep)
         lam = [l.index_select(0, keep) for l in lam]
         depth = 1.0 / inverse_depth(faces.table, prim, lam).clamp(min=1e-12)
@@ -182,7 +184,7 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
             idx = torch.nonzero(faces.zl_max.index_select(0, cand.prim) >= hidden_below.index_select(0, cand.pix)).squeeze(1)
             cand = tiles.Candidates(*(getattr(cand, k).index_select(0, idx) for k in ("prim", "pix", "x", "y")))
         lam = barycentrics(faces.table, cand.prim, cand.x, cand.y)
-        inside = (lam[0] >= 0) & (lam[1] >= 0) & (lam[2] >= 0)
+        inside = covers(lam)
         sqd = triangle_sqdist(faces.table, cand.prim, cand.x, cand.y)
         keep = (inside | (sqd <= radius**2)) if keep_inside else (~inside & (sqd <= radius**2))
         keep = torch.nonzero(keep).squeeze(1)
