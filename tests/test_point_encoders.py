@@ -1,3 +1,5 @@
+import copy
+
 import pytest
 import torch
 
@@ -5,6 +7,7 @@ from conftest import box_mesh
 from mvtn_exp.data.shapes import Meshes, PointClouds
 from mvtn_exp.models.point_encoders import (POINT_ENCODERS, PointNet, build_point_encoder,
                                             sample_points)
+from mvtn_exp.models.pooled_layer import _PooledLayer, pooled_layer
 
 
 def clouds(B=3, N=200, seed=0):
@@ -22,6 +25,62 @@ def test_pointnet_output_shape(out_features, head):
     assert y.shape == (3, out_features) and y.dtype == torch.float32 and torch.isfinite(y).all()
     assert net.out_features == out_features
     assert net.global_features(clouds()).shape == (3, 1024)
+
+
+def _layer_pair(Cin=6, C=9, momentum=0.1, seed=0):
+    """A conv + BatchNorm pair in float64 with some negative BatchNorm weights, and a copy."""
+    torch.manual_seed(seed)
+    conv = torch.nn.Conv1d(Cin, C, 1, bias=False).double()
+    bn = torch.nn.BatchNorm1d(C, momentum=momentum).double()
+    with torch.no_grad():
+        bn.weight.copy_(torch.randn(C, dtype=torch.float64))  # about half negative: max becomes min
+        bn.bias.copy_(torch.randn(C, dtype=torch.float64))
+        bn.running_mean.normal_()
+        bn.running_var.uniform_(0.5, 2.0)
+    return (conv, bn), (copy.deepcopy(conv), copy.deepcopy(bn))
+
+
+@pytest.mark.parametrize("momentum", [0.1, None])
+def test_pooled_layer_matches_the_plain_modules(momentum):
+    """max_n ReLU(BN(W h)) fused: output, every gradient and the running statistics equal the
+    modules run one by one (training mode), over two steps; evaluation mode too."""
+    (conv, bn), (conv2, bn2) = _layer_pair(momentum=momentum)
+    assert (bn.weight < 0).any() and (bn.weight > 0).any()
+    for step in range(2):
+        h = (torch.randn(4, 6, 11, dtype=torch.float64) * 3 + 5).requires_grad_()  # large mean: no cancellation
+        h2 = h.detach().clone().requires_grad_()
+        up = torch.randn(4, 9, dtype=torch.float64)
+        out = pooled_layer(h, conv, bn)
+        ref = torch.relu(bn2(conv2(h2))).amax(dim=2)
+        torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-10)
+        (out * up).sum().backward()
+        (ref * up).sum().backward()
+        for a, b in ((h.grad, h2.grad), (conv.weight.grad, conv2.weight.grad), (bn.weight.grad, bn2.weight.grad),
+                     (bn.bias.grad, bn2.bias.grad)):
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+        for key in ("running_mean", "running_var", "num_batches_tracked"):
+            torch.testing.assert_close(getattr(bn, key), getattr(bn2, key), rtol=1e-10, atol=1e-12)
+    bn.eval(), bn2.eval()
+    h = torch.randn(2, 6, 5, dtype=torch.float64)
+    torch.testing.assert_close(pooled_layer(h, conv, bn), torch.relu(bn2(conv2(h))).amax(dim=2))
+
+
+def test_pooled_layer_gradcheck():
+    torch.manual_seed(1)
+    h = torch.randn(3, 4, 5, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(6, 4, dtype=torch.float64, requires_grad=True)
+    gamma = torch.tensor([1.0, -0.5, 2.0, 0.3, -1.5, 0.8], dtype=torch.float64, requires_grad=True)
+    beta = torch.randn(6, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda *a: _PooledLayer.apply(*a, 1e-5)[0], (h, w, gamma, beta))
+
+
+def test_pointnet_fused_pool_matches_modules():
+    """PointNet's global feature (and so G) is the shared MLP then a max, whichever way it runs."""
+    torch.manual_seed(0)
+    net = PointNet().double().train()
+    x = clouds().double()
+    ref = torch.relu(copy.deepcopy(net).mlp(x.transpose(1, 2))).amax(dim=2)
+    torch.testing.assert_close(net.global_features(x), ref, rtol=1e-10, atol=1e-10)
 
 
 def test_pointnet_default_is_paper_b_without_tnet():

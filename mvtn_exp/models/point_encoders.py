@@ -17,6 +17,8 @@ from torch import Tensor, nn
 
 from mvtn_exp.data.shapes import Meshes, PointClouds
 
+from .pooled_layer import pooled_layer
+
 
 def _check_points(name: str, points: Tensor) -> None:
     if points.dim() != 3 or points.shape[-1] != 3:
@@ -31,6 +33,13 @@ def _shared_mlp(widths: Sequence[int]) -> nn.Sequential:
     for cin, cout in zip(widths[:-1], widths[1:]):
         layers += [nn.Conv1d(cin, cout, 1, bias=False), nn.BatchNorm1d(cout), nn.ReLU(inplace=True)]
     return nn.Sequential(*layers)
+
+
+def _max_pooled(mlp: nn.Sequential, points: Tensor) -> Tensor:
+    """``_shared_mlp`` then a max over the points: ``[B, N, 3] -> [B, widths[-1]]``. The last
+    layer, its BatchNorm and the max run as one (``pooled_layer``: same values, no ``[B, C, N]``
+    activations)."""
+    return pooled_layer(mlp[:-3](points.transpose(1, 2)), mlp[-3], mlp[-2])
 
 
 def _fc_stack(widths: Sequence[int]) -> nn.Sequential:
@@ -59,7 +68,7 @@ class InputTNet(nn.Module):
             self.out.bias.copy_(torch.eye(3).flatten())
 
     def forward(self, points: Tensor) -> Tensor:
-        x = self.mlp(points.transpose(1, 2)).amax(dim=2)  # [B, 1024]
+        x = _max_pooled(self.mlp, points)  # [B, 1024]
         return self.out(self.fc(x)).view(-1, 3, 3)
 
 
@@ -91,7 +100,7 @@ class PointNet(nn.Module):
         _check_points(type(self).__name__, points)
         if self.tnet is not None:
             points = torch.bmm(points, self.tnet(points))
-        return self.mlp(points.transpose(1, 2)).amax(dim=2)
+        return _max_pooled(self.mlp, points)
 
     def forward(self, points: Tensor) -> Tensor:
         """``[B, N, 3] -> [B, out_features]``."""
