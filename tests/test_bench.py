@@ -162,3 +162,20 @@ def test_scaling_fit_and_bend_on_known_curves():
     ys = [10, 10, 10, 20, 40]
     assert bend(ns, ys) == "n=4: 0.00 -> 1.00"
     assert bend([1, 2], [1, 2]) == "-"
+
+
+def test_step_ratio_bench_times_both_sides_with_the_trainers_step(tmp_path):
+    """Fixed and learned views at the same M, stage split from the trainer's StepTimer."""
+    from mvtn_exp.bench import step_ratio
+
+    rows = step_ratio.measure([f"dataset.root={tmp_path}", "dataset.num_per_class=[4,2,2]", "image_size=32", "batch_size=4",
+                               "logger=none"], views=(1, 2), rounds=1, batches=2)
+    assert [r["views"] for r in rows] == [1, 2] and all(r["selector"] == "mvtn_spherical" for r in rows)
+    for r in rows:
+        assert r["steps_per_round"] == 2
+        for side in step_ratio.SIDES:
+            parts = sum(r[f"{side}_{k}"] for k in ("data", "selector", "render", "backbone", "optimizer"))
+            assert r[f"{side}_total"] > 0 and abs(parts - r[f"{side}_total"]) < 1e-9
+        assert r["learned_selector"] > 0 and 0 < r["render_share"] < 1 and r["ratio"] > 0
+    table = step_ratio.to_markdown(rows, "t")
+    assert table.count("\n| ") == 3 and "| 2 | " in table

@@ -47,48 +47,46 @@ class _PooledLayer(torch.autograd.Function):
     def forward(ctx, h, weight, gamma, beta, eps):
         B, Cin, N = h.shape
         n = B * N
-        flat = h.transpose(0, 1).reshape(Cin, n)  # [Cin, n], points in (shape, point) order
-        mu_h = flat.mean(dim=1)  # [Cin]
-        centred = flat - mu_h[:, None]
-        cov = centred @ centred.T / n  # [Cin, Cin]
+        mu_h = h.mean(dim=(0, 2))  # [Cin]
+        centred = h - mu_h[None, :, None]
+        cov = torch.matmul(centred, centred.transpose(1, 2)).sum(0) / n  # [Cin, Cin]
+        w_cov = weight @ cov  # [C, Cin]
         mean = weight @ mu_h  # [C]
-        var = ((weight @ cov) * weight).sum(1).clamp_min(0.0)  # [C]
+        var = (w_cov * weight).sum(1).clamp_min(0.0)  # [C]
         rstd = (var + eps).rsqrt()
         a = gamma * rstd
         sign = torch.where(a < 0, -1.0, 1.0).to(h.dtype)
-        # the point each (channel, shape) takes its max from: argmax of sign(a) * z
-        best, idx = ((weight * sign[:, None]) @ flat).view(-1, B, N).max(dim=2)  # [C, B]
-        e = best * sign[:, None]
-        xhat = (e - mean[:, None]) * rstd[:, None]
-        pre = gamma[:, None] * xhat + beta[:, None]
-        out = pre.clamp_min(0.0).T  # [B, C]
-        ctx.save_for_backward(flat, centred, cov, weight, gamma, rstd, xhat, pre, idx)
-        ctx.shape = (B, Cin, N)
-        return out, mean, var
+        # the point each (shape, channel) takes its max from: argmax of sign(a) * z
+        best, idx = torch.matmul(weight * sign[:, None], h).max(dim=2)  # [B, C]
+        e = best * sign
+        xhat = (e - mean) * rstd
+        pre = gamma * xhat + beta
+        ctx.save_for_backward(h, centred, w_cov, weight, gamma, rstd, xhat, pre, idx)
+        return pre.clamp_min(0.0), mean, var
 
     @staticmethod
     def backward(ctx, g_out, _g_mean, _g_var):
-        flat, centred, cov, weight, gamma, rstd, xhat, pre, idx = ctx.saved_tensors
-        B, Cin, N = ctx.shape
+        h, centred, w_cov, weight, gamma, rstd, xhat, pre, idx = ctx.saved_tensors
+        B, Cin, N = h.shape
         n = B * N
-        s = g_out.T * (pre > 0).to(g_out.dtype)  # dL/d(BN output) at the chosen points [C, B]
-        g_beta = s.sum(1)
-        g_gamma = (s * xhat).sum(1)
-        q = s * (gamma * rstd)[:, None]  # dL/dz at the chosen point [C, B]
-        g_mean = -q.sum(1)  # through the batch mean
+        s = g_out * (pre > 0).to(g_out.dtype)  # dL/d(BN output) at the chosen points [B, C]
+        g_beta = s.sum(0)
+        g_gamma = (s * xhat).sum(0)
+        q = s * (gamma * rstd)  # dL/dz at the chosen point [B, C]
         g_var = -0.5 * rstd * rstd * gamma * g_gamma  # dL/dvar: xhat = (e - mean) rstd
-        # dL/dz over all points: g_mean / n + (2 g_var / n) (z - mean), plus q at the chosen points
-        c_mean = g_mean / n
+        # dL/dz over all points: c_mean + c_dev (z - mean), plus q at the chosen points
+        c_mean = -q.sum(0) / n  # through the batch mean
         c_dev = 2.0 * g_var / n
-        at = (idx + torch.arange(B, device=idx.device) * N).flatten()  # [C * B] columns of flat
-        h_at = flat.index_select(1, at).view(Cin, -1, B)  # [Cin, C, B]
-        g_weight = (c_mean[:, None] * flat.sum(1)[None, :] + (c_dev[:, None] * n) * (weight @ cov)
-                    + (h_at * q[None]).sum(2).T)
+        rows = (idx + torch.arange(B, device=idx.device)[:, None] * N).flatten()  # [B * C] chosen points
+        points = h.transpose(1, 2).reshape(n, Cin)  # points-major rows
+        h_at = points.index_select(0, rows).view(B, -1, Cin)  # [B, C, Cin]
+        g_weight = (c_mean[:, None] * points.sum(0)[None, :] + (c_dev[:, None] * n) * w_cov
+                    + (h_at * q[:, :, None]).sum(0))
         g_h = None
         if ctx.needs_input_grad[0]:
-            dense = (weight.T @ c_mean)[:, None] + (weight.T @ (c_dev[:, None] * weight)) @ centred  # [Cin, n]
-            sparse = (weight.T[:, :, None] * q[None]).reshape(Cin, -1)  # [Cin, C * B]: q_cb w_c
-            g_h = dense.index_add(1, at, sparse).view(Cin, B, N).transpose(0, 1)
+            dense = (weight.T @ c_mean)[None, :, None] + torch.matmul(weight.T @ (c_dev[:, None] * weight), centred)
+            sparse = torch.zeros_like(points).index_add_(0, rows, (q[:, :, None] * weight[None]).view(-1, Cin))
+            g_h = dense + sparse.view(B, N, Cin).transpose(1, 2)
         return g_h, g_weight, g_gamma, g_beta, None
 
 
