@@ -81,13 +81,16 @@ def build_selector_from(cfg: TrainConfig) -> nn.Module:
         return build_selector("circular", cfg.views, elevation=s.elevation, distance=s.distance)
     if s.name == "spherical":
         return build_selector("spherical", cfg.views, distance=s.distance, sphere=s.sphere)
+    if s.name == "noisy":
+        return build_selector("noisy", cfg.views, layout=s.noise_layout, azim_std=s.noise_azim, elev_std=s.noise_elev,
+                              elevation=s.elevation, distance=s.distance, sphere=s.sphere)
     if s.name == "mvtn_poi":
         return build_selector("mvtn_poi", cfg.views, distance=s.distance, gain=s.poi_gain, sphere=s.sphere,
                               cache=s.poi_cache, learn_gain=s.poi_learn_gain, hypotheses=s.hypotheses)
     pe = cfg.point_encoder
     kw = dict(point_encoder=pe.name, features=pe.features, distance=s.distance, learn_distance=s.learn_distance,
               distance_bound=s.distance_bound, azim_bound=s.azim_bound, elev_bound=s.elev_bound,
-              init_std=s.init_std, point_encoder_kwargs={"use_tnet": pe.use_tnet}, regressor=s.regressor)
+              init_std=s.init_std, point_encoder_kwargs=pe.kwargs(), regressor=s.regressor)
     if s.name == "mvtn_circular":
         kw["elevation"] = s.elevation
     else:
@@ -102,7 +105,7 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
     initial weights and every later random draw (order, light, colour) are the same whichever
     selector is chosen: fixed and learned views are compared on equal terms."""
     mvnet = build_multiview(cfg.mvnet.name, cfg.backbone.name, num_classes, weights=cfg.backbone.weights,
-                            pool=cfg.mvnet.pool, dropout=cfg.mvnet.dropout)
+                            **cfg.mvnet.kwargs())
     with torch.random.fork_rng(devices=[]):
         selector = build_selector_from(cfg)
     polarity = ViewPolarity(cfg.views) if cfg.optim.flip_explore > 0 else None

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from .data.synthetic import ROTATIONS
-from .models.backbones import BACKBONES
+from .models.backbones import BACKBONES, FEATURE_DIMS
 from .models.multiview import MULTIVIEW, POOLS
 from .models.point_encoders import POINT_ENCODERS
 from .render.config import RendererConfig
@@ -129,7 +129,10 @@ class DatasetConfig:
 
 @dataclass
 class SelectorConfig:
-    """The view selector G (``selectors/``). Fixed: circular | spherical | random; learned:
+    """The view selector G (``selectors/``). Fixed: circular | spherical | random | noisy (the
+    paper's alternative: ``noise_layout`` circular or spherical plus Gaussian noise of
+    ``noise_azim`` / ``noise_elev`` degrees std, redrawn at every training step; none at
+    evaluation); learned:
     mvtn_direct (the paper's: u = u_bound * tanh(G(S))) | mvtn_direct_offset | mvtn_circular |
     mvtn_spherical (u = u0 + u_bound * tanh(G(S, u0))) | mvtn_poi (experimental).
 
@@ -170,6 +173,9 @@ class SelectorConfig:
     poi_learn_gain: bool = False
     hypotheses: int = 1
     regressor: str = "compact"
+    noise_layout: str = "circular"
+    noise_azim: float = 18.0
+    noise_elev: float = 9.0
 
     @property
     def learned(self) -> bool:
@@ -180,6 +186,9 @@ class SelectorConfig:
         at_least("selector.distance", self.distance, 0.0, strict=True)
         one_of("selector.sphere", self.sphere, ("equal_area", "fibonacci"))
         one_of("selector.regressor", self.regressor, REGRESSORS)
+        one_of("selector.noise_layout", self.noise_layout, ("circular", "spherical"))
+        at_least("selector.noise_azim", self.noise_azim, 0.0)
+        at_least("selector.noise_elev", self.noise_elev, 0.0)
         for key in ("azim_bound", "elev_bound"):
             if getattr(self, key) is not None:
                 at_least(f"selector.{key}", getattr(self, key), 0.0)
@@ -200,16 +209,26 @@ class SelectorConfig:
 
 @dataclass
 class PointEncoderConfig:
-    """G's point encoder: ``[B, N, 3] -> [B, features]`` (b = 40 in the paper)."""
+    """G's point encoder: ``[B, N, 3] -> [B, features]`` (b = 40 in the paper). ``pointnet``
+    (``use_tnet``: the input transform) or ``dgcnn`` (``k`` neighbours per point, ``emb_dims``:
+    the global feature's width before pooling)."""
 
     name: str = "pointnet"
     features: int = 40
     use_tnet: bool = False
+    k: int = 20
+    emb_dims: int = 1024
 
     def validate(self) -> "PointEncoderConfig":
         one_of("point_encoder", self.name, POINT_ENCODER_NAMES)
         at_least("point_encoder.features", self.features, 1)
+        at_least("point_encoder.k", self.k, 1)
+        at_least("point_encoder.emb_dims", self.emb_dims, 1)
         return self
+
+    def kwargs(self) -> dict:
+        """The chosen encoder's own constructor arguments."""
+        return {"k": self.k, "emb_dims": self.emb_dims} if self.name == "dgcnn" else {"use_tnet": self.use_tnet}
 
 
 @dataclass
@@ -226,17 +245,36 @@ class BackboneConfig:
 
 @dataclass
 class MVNetConfig:
-    """The multi-view network C: mvcnn (pool features over views) | late_fusion (pool logits)."""
+    """The multi-view network C: mvcnn (pool features over views) | late_fusion (pool logits) |
+    view_transformer (``blocks`` self-attention blocks with ``heads`` heads over the view features
+    as a set, tokens ``width`` wide (null: the backbone's feature size), then ``pool``;
+    ``models/view_transformer.py``)."""
 
     name: str = "mvcnn"
     pool: str = "max"
     dropout: float = 0.0
+    blocks: int = 2
+    heads: int = 4
+    width: Optional[int] = None
+    mlp_ratio: float = 2.0
 
     def validate(self) -> "MVNetConfig":
         one_of("mvnet", self.name, MVNET_NAMES)
         one_of("mvnet.pool", self.pool, POOLS)
         fraction("mvnet.dropout", self.dropout)
+        at_least("mvnet.blocks", self.blocks, 1)
+        at_least("mvnet.heads", self.heads, 1)
+        if self.width is not None:
+            at_least("mvnet.width", self.width, 1)
+        at_least("mvnet.mlp_ratio", self.mlp_ratio, 0.0, strict=True)
         return self
+
+    def kwargs(self) -> dict:
+        """Constructor arguments of ``build_multiview`` beyond the backbone and class count."""
+        kw = dict(pool=self.pool, dropout=self.dropout)
+        if self.name == "view_transformer":
+            kw.update(blocks=self.blocks, heads=self.heads, width=self.width, mlp_ratio=self.mlp_ratio)
+        return kw
 
 
 @dataclass
@@ -449,6 +487,18 @@ class TrainConfig:
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
                      self.optim, self.augment, self.logger):
             part.validate()
+        if self.selector.learned and self.selector.name != "mvtn_poi" and self.point_encoder.name == "dgcnn":
+            n = min(self.dataset.num_points, self.selector.num_points or self.dataset.num_points)
+            if n < self.point_encoder.k:
+                raise ValueError(f"point_encoder.k={self.point_encoder.k}: DGCNN needs at least k points, G reads {n} "
+                                 f"(selector.num_points={self.selector.num_points}, dataset.num_points="
+                                 f"{self.dataset.num_points})")
+        if self.mvnet.name == "view_transformer":
+            width = self.mvnet.width if self.mvnet.width is not None else FEATURE_DIMS[self.backbone.name]
+            if width % self.mvnet.heads:
+                raise ValueError(f"mvnet.heads={self.mvnet.heads} must divide the view transformer's token width "
+                                 f"{width} (mvnet.width={self.mvnet.width}; null takes backbone={self.backbone.name}'s "
+                                 f"feature size {FEATURE_DIMS[self.backbone.name]})")
         n_warm = self.optim.warmup_num_views
         if n_warm is not None and n_warm != self.views and self.optim.warmup_views == "u0":
             raise ValueError(f"optim.warmup_num_views={n_warm} with optim.warmup_views=u0: G's initial views are "

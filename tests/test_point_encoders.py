@@ -134,10 +134,11 @@ def test_pointnet_rejects_bad_input():
 
 
 def test_point_encoder_registry():
-    assert set(POINT_ENCODERS) == {"pointnet"}
+    assert set(POINT_ENCODERS) == {"pointnet", "dgcnn"}
     assert build_point_encoder("pointnet", out_features=12, use_tnet=True).tnet is not None
-    with pytest.raises(ValueError, match="allowed: pointnet"):
-        build_point_encoder("dgcnn")
+    assert build_point_encoder("dgcnn", out_features=12, k=4).k == 4
+    with pytest.raises(ValueError, match="allowed: dgcnn, pointnet"):
+        build_point_encoder("pointnet2")
 
 
 # --------------------------------------------------------------------------- sample_points

@@ -5,7 +5,7 @@ from mvtn_exp.render import layouts
 from mvtn_exp.selectors import (SELECTORS, VARIANTS, MVTNSelector, RandomSelector, build_selector)
 from mvtn_exp.selectors.mvtn import REGRESSORS, regressor_parameters
 
-FIXED = ["circular", "spherical", "random"]
+FIXED = ["circular", "spherical", "random", "noisy"]
 LEARNED = ["mvtn_direct", "mvtn_direct_offset", "mvtn_circular", "mvtn_spherical", "mvtn_poi"]
 
 
@@ -15,7 +15,8 @@ def clouds(B=3, N=32, seed=0, dtype=torch.float32):
 
 def test_registry_names():
     assert set(SELECTORS) == set(FIXED + LEARNED)
-    allowed = "allowed: circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, random, spherical"
+    allowed = ("allowed: circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, noisy, random, "
+               "spherical")
     with pytest.raises(ValueError, match=allowed):
         build_selector("mvtn_free", 4)
 
@@ -311,8 +312,8 @@ def test_mvtn_eval_output_independent_of_batch(variant):
 def test_mvtn_bad_arguments_and_custom_encoder():
     with pytest.raises(ValueError, match="variant"):
         MVTNSelector(4, "free")
-    with pytest.raises(ValueError, match="allowed: pointnet"):
-        MVTNSelector(4, "direct", point_encoder="dgcnn")
+    with pytest.raises(ValueError, match="allowed: dgcnn, pointnet"):
+        MVTNSelector(4, "direct", point_encoder="pointnet2")
     sel = MVTNSelector(4, "circular", point_encoder="pointnet", features=8, point_encoder_kwargs={"use_tnet": True})
     assert sel.encoder.out_features == 8 and sel.encoder.tnet is not None
     assert sel.regressor[0].in_features == 8 + 2 * 4 and sel.regressor[-1].out_features == 2 * 4

@@ -250,6 +250,11 @@ BACKBONES: dict[str, Callable[..., _Backbone]] = {
 }
 
 
+# ``feature_dim`` of each registered backbone as built by ``build_backbone`` (checked in the tests),
+# for settings validated before anything is built
+FEATURE_DIMS = {"resnet18": 512, "resnet34": 512, "resnet50": 2048, "small_cnn": 256}
+
+
 def build_backbone(name: str, num_classes: int, weights: Optional[PathLike] = None,
                    in_channels: int = 3) -> _Backbone:
     """Build a registered backbone by name: ``[N, in_channels, H, W] -> [N, num_classes]``."""

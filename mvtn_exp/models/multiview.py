@@ -98,13 +98,21 @@ class LateFusion(MVCNN):
         return logits, feats.mean(dim=1)
 
 
-MULTIVIEW: dict[str, Callable[..., MVCNN]] = {"mvcnn": MVCNN, "late_fusion": LateFusion}
+def _view_transformer(*args, **kw) -> MVCNN:
+    from .view_transformer import ViewTransformer  # it subclasses MVCNN
+
+    return ViewTransformer(*args, **kw)
+
+
+MULTIVIEW: dict[str, Callable[..., MVCNN]] = {"mvcnn": MVCNN, "late_fusion": LateFusion,
+                                              "view_transformer": _view_transformer}
 
 
 def build_multiview(name: str, backbone: Union[nn.Module, str], num_classes: int, **kw) -> MVCNN:
     """Build a registered multi-view network: ``[B, M, 3, H, W] -> (logits [B, K], features [B, D])``.
 
-    ``kw`` goes to the constructor (``weights``, ``pool``, ``dropout``).
+    ``kw`` goes to the constructor (``weights``, ``pool``, ``dropout``; ``view_transformer`` also
+    takes ``blocks``, ``heads``, ``width``, ``mlp_ratio``).
     """
     if name not in MULTIVIEW:
         raise ValueError(f"unknown multi-view network {name!r}; allowed: {', '.join(sorted(MULTIVIEW))}")

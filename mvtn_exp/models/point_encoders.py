@@ -4,7 +4,7 @@
   ReLU), global max-pool, projection to ``out_features`` (MVTN's b = 40). The input 3x3 T-net is
   optional (``use_tnet``); the feature T-net is not implemented (MVTN does not use it).
 * ``sample_points(shapes, n)``: a ``PointClouds`` / ``Meshes`` batch -> dense ``[B, n, 3]``.
-* ``POINT_ENCODERS`` / ``build_point_encoder``: the registry.
+* ``POINT_ENCODERS`` / ``build_point_encoder``: the registry (``dgcnn``: ``dgcnn.py``).
 
 Every encoder maps points ``[B, N, 3] -> [B, out_features]`` and exposes ``out_features``.
 """
@@ -111,8 +111,15 @@ def pointnet(out_features: int = 40, **kw) -> PointNet:
     return PointNet(out_features=out_features, **kw)
 
 
+def dgcnn(out_features: int = 40, **kw) -> nn.Module:
+    from .dgcnn import DGCNN
+
+    return DGCNN(out_features=out_features, **kw)
+
+
 POINT_ENCODERS: dict[str, Callable[..., nn.Module]] = {
     "pointnet": pointnet,
+    "dgcnn": dgcnn,
 }
 
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from typing import Callable
 
-from mvtn_exp.selectors.fixed import (CircularSelector, RandomSelector, SphericalSelector, ViewSelector,
-                                      check_views)
+from mvtn_exp.selectors.fixed import (CircularSelector, NoisySelector, RandomSelector, SphericalSelector,
+                                      ViewSelector, check_views)
 from mvtn_exp.selectors.mvtn import VARIANTS, MVTNSelector
 from mvtn_exp.selectors.poi import PointOfInterestSelector
 
@@ -37,6 +37,7 @@ SELECTORS: dict[str, Callable[..., ViewSelector]] = {
     "circular": CircularSelector,
     "spherical": SphericalSelector,
     "random": RandomSelector,
+    "noisy": NoisySelector,
     "mvtn_direct": mvtn_direct,
     "mvtn_direct_offset": mvtn_direct_offset,
     "mvtn_circular": mvtn_circular,
@@ -54,7 +55,7 @@ def build_selector(name: str, views: int, **kw) -> ViewSelector:
 
 
 __all__ = [
-    "SELECTORS", "VARIANTS", "CircularSelector", "MVTNSelector", "RandomSelector", "SphericalSelector",
+    "SELECTORS", "VARIANTS", "CircularSelector", "MVTNSelector", "NoisySelector", "RandomSelector", "SphericalSelector",
     "PointOfInterestSelector", "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct", "mvtn_direct_offset",
     "mvtn_spherical",
 ]

@@ -128,3 +128,41 @@ class RandomSelector(ViewSelector):
 
     def extra_repr(self) -> str:
         return f"views={self.views}, distance={self.distance}, seed={self.seed}"
+
+
+class NoisySelector(ViewSelector):
+    """A fixed layout with Gaussian noise on every view, redrawn at every training call: the paper's
+    alternative to learned views (std 18 degrees in azimuth and 9 in elevation: the official code's
+    ``input_view_noise = 0.1`` times 180 and 90).
+
+    ``layout``: ``circular`` (at ``elevation``) or ``spherical`` (``sphere``). Training mode adds
+    ``azim_std`` / ``elev_std`` (degrees) of noise per shape and view, drawn from torch's global
+    generator (so ``torch.manual_seed`` makes a run reproducible); evaluation mode gives the layout
+    itself. Elevations are not clipped: a view pushed past a pole looks from the other side
+    (the renderer takes any elevation).
+    """
+
+    LAYOUTS = ("circular", "spherical")
+
+    def __init__(self, views: int, layout: str = "circular", azim_std: float = 18.0, elev_std: float = 9.0,
+                 elevation: float = 30.0, distance: float = 2.2, sphere: str = "equal_area") -> None:
+        super().__init__(views)
+        if layout not in self.LAYOUTS:
+            raise ValueError(f"NoisySelector: layout={layout!r}; expected one of {', '.join(self.LAYOUTS)}")
+        if not (azim_std >= 0 and elev_std >= 0):
+            raise ValueError(f"NoisySelector: noise std must be >= 0, got azim {azim_std}, elev {elev_std}")
+        self.layout, self.azim_std, self.elev_std = layout, float(azim_std), float(elev_std)
+        self.base = (CircularSelector(views, elevation, distance) if layout == "circular"
+                     else SphericalSelector(views, distance, sphere))
+
+    def forward(self, points: Tensor) -> Views:
+        """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]``."""
+        azim, elev, dist = self.base(points)
+        if self.training:
+            noise = torch.randn(2, *azim.shape, dtype=torch.float64)  # CPU, float64: the same draw on any device
+            azim = azim + (noise[0] * self.azim_std).to(azim)
+            elev = elev + (noise[1] * self.elev_std).to(elev)
+        return azim, elev, dist
+
+    def extra_repr(self) -> str:
+        return f"views={self.views}, layout={self.layout}, azim_std={self.azim_std}, elev_std={self.elev_std}"

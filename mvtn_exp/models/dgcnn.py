@@ -1,0 +1,95 @@
+"""DGCNN (Wang et al. 2019), the paper's alternative point encoder for G.
+
+``points [B, N, 3] -> features [B, out_features]``:
+
+    x0 = points                                          [B, 3, N]
+    x_l = max_j LeakyReLU(BN(W_l [x_i, x_j - x_i]))       EdgeConv over the k nearest neighbours
+                                                         of x_{l-1} in feature space ("dynamic
+                                                         graph"), widths 64, 64, 128, 256
+    g = LeakyReLU(BN(W [x_1, x_2, x_3, x_4]))             [B, emb_dims, N]
+    features = head([max_N g, mean_N g])                 [B, out_features]
+
+The neighbours of the first layer are found in xyz, those of the later layers in the previous
+layer's features; each point counts as its own nearest neighbour, as in the reference code. Needs
+N >= k points (checked at compose time against the points G reads).
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import Tensor, nn
+
+EDGE_WIDTHS = (64, 64, 128, 256)
+
+
+def knn(x: Tensor, k: int) -> Tensor:
+    """``x [B, C, N]`` -> indices of each point's ``k`` nearest points (itself included) ``[B, N, k]``."""
+    sq = x.pow(2).sum(1)  # [B, N]
+    neg = 2 * torch.bmm(x.transpose(1, 2), x) - sq[:, :, None] - sq[:, None, :]  # -|xi - xj|^2
+    return neg.topk(k, dim=-1).indices
+
+
+def edge_features(x: Tensor, k: int) -> Tensor:
+    """``x [B, C, N]`` -> ``[B, 2C, N, k]``: ``(x_j - x_i, x_i)`` for the k nearest ``j`` of each ``i``."""
+    B, C, N = x.shape
+    idx = knn(x.detach(), k)  # the graph is rebuilt from values; no gradient through the choice
+    pts = x.transpose(1, 2)  # [B, N, C]
+    nb = pts.reshape(B * N, C).index_select(0, (idx + torch.arange(B, device=x.device)[:, None, None] * N).reshape(-1))
+    nb = nb.view(B, N, k, C)
+    centre = pts[:, :, None, :].expand(B, N, k, C)
+    return torch.cat([nb - centre, centre], dim=3).permute(0, 3, 1, 2)
+
+
+class EdgeConv(nn.Module):
+    """``[B, cin, N] -> [B, cout, N]``: shared MLP on edge features, max over the k neighbours."""
+
+    def __init__(self, cin: int, cout: int, k: int) -> None:
+        super().__init__()
+        self.k = k
+        self.mlp = nn.Sequential(nn.Conv2d(2 * cin, cout, 1, bias=False), nn.BatchNorm2d(cout), nn.LeakyReLU(0.2))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.mlp(edge_features(x, self.k)).amax(dim=3)
+
+
+class DGCNN(nn.Module):
+    """DGCNN encoder: points ``[B, N, 3]`` -> ``[B, out_features]`` (see the module docstring).
+
+    ``k``: neighbours per point (20 in the paper); ``emb_dims``: width of the global feature
+    before pooling (1024); ``head_widths``: hidden widths of the head (Linear + BN + LeakyReLU;
+    ``()``: one linear layer from the pooled ``2 * emb_dims``).
+    """
+
+    def __init__(self, out_features: int = 40, k: int = 20, emb_dims: int = 1024,
+                 head_widths: Sequence[int] = ()) -> None:
+        super().__init__()
+        if int(out_features) != out_features or out_features < 1:
+            raise ValueError(f"DGCNN: out_features must be an integer >= 1, got {out_features!r}")
+        if k < 1 or emb_dims < 1:
+            raise ValueError(f"DGCNN: point_encoder.k={k} and point_encoder.emb_dims={emb_dims} must be >= 1")
+        self.out_features, self.k = int(out_features), int(k)
+        widths = (3, *EDGE_WIDTHS)
+        self.edges = nn.ModuleList(EdgeConv(a, b, self.k) for a, b in zip(widths[:-1], widths[1:]))
+        self.embed = nn.Sequential(nn.Conv1d(sum(EDGE_WIDTHS), emb_dims, 1, bias=False), nn.BatchNorm1d(emb_dims),
+                                   nn.LeakyReLU(0.2))
+        layers: list[nn.Module] = []
+        dims = (2 * emb_dims, *[int(w) for w in head_widths])
+        for a, b in zip(dims[:-1], dims[1:]):
+            layers += [nn.Linear(a, b, bias=False), nn.BatchNorm1d(b), nn.LeakyReLU(0.2)]
+        self.head = nn.Sequential(*layers, nn.Linear(dims[-1], self.out_features))
+
+    def forward(self, points: Tensor) -> Tensor:
+        """``[B, N, 3] -> [B, out_features]``."""
+        if points.dim() != 3 or points.shape[-1] != 3:
+            raise ValueError(f"DGCNN expects points [B, N, 3], got {list(points.shape)}")
+        if points.shape[1] < self.k:
+            raise ValueError(f"DGCNN: {points.shape[1]} points per shape, fewer than point_encoder.k={self.k} "
+                             "neighbours")
+        x = points.transpose(1, 2)
+        feats = []
+        for edge in self.edges:
+            x = edge(x)
+            feats.append(x)
+        g = self.embed(torch.cat(feats, dim=1))  # [B, emb_dims, N]
+        return self.head(torch.cat([g.amax(dim=2), g.mean(dim=2)], dim=1))

@@ -1,0 +1,200 @@
+"""The paper's alternatives and newer components (issue 12): each trains, evaluates and round-trips
+a checkpoint from its config option; component-specific behaviour below."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.engine.evaluation import evaluate_checkpoint
+from mvtn_exp.engine.trainer import as_config
+from mvtn_exp.models.backbones import BACKBONES, FEATURE_DIMS, build_backbone
+from mvtn_exp.models.multiview import MULTIVIEW, build_multiview
+from mvtn_exp.models.point_encoders import POINT_ENCODERS, build_point_encoder
+from mvtn_exp.models.view_transformer import ViewTransformer
+from mvtn_exp.schema import EvalConfig
+from mvtn_exp.selectors import build_selector
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> str:
+    return str(tmp_path_factory.mktemp("synthetic_cache"))
+
+
+def _tiny(cache, **groups) -> dict:
+    cfg = {"views": 3, "image_size": 32, "epochs": 1, "batch_size": 8, "seed": 0,
+           "dataset": {"root": cache, "num_per_class": [4, 2, 2]}, "backbone": {"name": "small_cnn"},
+           "logger": {"progress": False, "tensorboard": False}}
+    cfg.update(groups)
+    return cfg
+
+
+@pytest.mark.parametrize("groups", [
+    {"mvnet": {"name": "view_transformer", "blocks": 1, "heads": 2, "width": 32}},
+    {"selector": {"name": "noisy", "noise_layout": "spherical"}},
+    {"point_encoder": {"name": "dgcnn", "k": 8, "emb_dims": 64}},
+], ids=["view_transformer", "noisy", "dgcnn"])
+def test_component_trains_evaluates_and_round_trips_a_checkpoint(cache, tmp_path, groups):
+    """Train one epoch, then rebuild the model from best.pt's config alone and evaluate it: the
+    same test accuracy and loss as the training run's own test pass."""
+    metrics = train(_tiny(cache, **groups), tmp_path / "train")
+    assert metrics["steps"] > 0 and 0.0 <= metrics["test_acc"] <= 1.0
+    group, settings = next(iter(groups.items()))
+    ckpt = tmp_path / "train" / "best.pt"
+    cfg = as_config(checkpoint.load(ckpt)["config"])
+    for key, value in settings.items():
+        assert getattr(getattr(cfg, group), key) == value
+    again = evaluate_checkpoint(EvalConfig(ckpt=str(ckpt), progress=False), tmp_path / "eval")
+    assert again["test_acc"] == metrics["test_acc"]
+    assert again["test_loss"] == pytest.approx(metrics["test_loss"], rel=1e-6)
+
+
+# --------------------------------------------------------------------------- view transformer
+
+def _vt(**kw):
+    torch.manual_seed(0)
+    return build_multiview("view_transformer", build_backbone("small_cnn", 5), 5, **kw)
+
+
+@pytest.mark.parametrize("M", [1, 2, 12])
+def test_view_transformer_any_m_finite_and_order_free(M):
+    net = _vt(blocks=2, heads=4).eval()
+    x = torch.rand(2, M, 3, 32, 32, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    logits, feats = net(x)
+    assert logits.shape == (2, 5) and feats.shape == (2, FEATURE_DIMS["small_cnn"])
+    assert torch.isfinite(logits).all()
+    perm = torch.randperm(M, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(net(x[:, perm])[0], logits, rtol=1e-5, atol=1e-5)
+    logits.sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for n, p in net.named_parameters()
+               if n.startswith("blocks"))
+
+
+def test_view_transformer_mixes_views_and_projects_to_width():
+    """Attention lets one view change another view's token (MVCNN's pooled features cannot)."""
+    net = _vt(blocks=1, heads=2, width=48).eval()
+    assert net.feature_dim == 48 and net.head.in_features == 48
+    x = torch.rand(1, 3, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    y = x.clone()
+    y[:, 2] = torch.rand(3, 32, 32, generator=torch.Generator().manual_seed(5))
+    tokens = {}
+    net.blocks[0].register_forward_hook(lambda mod, inp, out: tokens.setdefault(len(tokens), out.detach()))
+    net(x), net(y)
+    assert not torch.allclose(tokens[0][:, 0], tokens[1][:, 0])  # view 0 saw view 2 change
+
+
+def test_view_transformer_bad_settings_are_one_line_errors():
+    with pytest.raises(ValueError, match=r"mvnet.heads=3 must be >= 1 and divide the token width 256"):
+        _vt(heads=3)
+    with pytest.raises(ValueError, match=r"mvnet.blocks=0"):
+        _vt(blocks=0)
+    assert isinstance(_vt(), ViewTransformer)
+
+
+def test_view_transformer_heads_checked_at_compose_time(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "mvnet=view_transformer", "mvnet.heads=3",
+                        f"hydra.run.dir={tmp_path / 'run'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(err) == 1 and "Traceback" not in r.stderr, r.stderr[-800:]
+    assert "mvnet.heads=3" in err[0] and "backbone=small_cnn" in err[0] and "256" in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_feature_dims_table_matches_the_backbones():
+    for name in BACKBONES:
+        assert build_backbone(name, 3).feature_dim == FEATURE_DIMS[name], name
+
+
+# --------------------------------------------------------------------------- noisy views
+
+def test_noisy_views_are_the_layout_plus_fresh_noise_in_training_only():
+    pts = torch.zeros(4000, 8, 3)
+    for layout in ("circular", "spherical"):
+        sel = build_selector("noisy", 4, layout=layout)
+        base = build_selector(layout, 4)(pts)
+        sel.eval()
+        for a, b in zip(sel(pts), base):
+            assert torch.equal(a, b)
+        sel.train()
+        torch.manual_seed(0)
+        azim, elev, dist = sel(pts)
+        assert torch.equal(dist, base[2])
+        da, de = azim - base[0], elev - base[1]
+        assert abs(float(da.std()) - 18.0) < 0.5 and abs(float(de.std()) - 9.0) < 0.3
+        assert abs(float(da.mean())) < 0.5 and abs(float(de.mean())) < 0.3
+        again = sel(pts)[0]
+        assert not torch.equal(again, azim)  # redrawn at every call
+        torch.manual_seed(0)
+        assert torch.equal(sel(pts)[0], azim)  # reproducible from the seed
+
+
+def test_noisy_selector_bad_settings():
+    with pytest.raises(ValueError, match="layout='random'"):
+        build_selector("noisy", 4, layout="random")
+    with pytest.raises(ValueError, match="std must be >= 0"):
+        build_selector("noisy", 4, azim_std=-1.0)
+
+
+# --------------------------------------------------------------------------- every registered component
+
+@pytest.mark.parametrize("mvnet", sorted(MULTIVIEW))
+@pytest.mark.parametrize("backbone", sorted(BACKBONES))
+@pytest.mark.parametrize("M", [1, 12])
+def test_every_multiview_network_with_every_backbone(mvnet, backbone, M):
+    """B = 2: output shapes, finite values, gradients to the images and to every used parameter."""
+    torch.manual_seed(0)
+    net = build_multiview(mvnet, backbone, 4).train()
+    x = torch.rand(2, M, 3, 32, 32, requires_grad=True)
+    logits, feats = net(x)
+    assert logits.shape == (2, 4) and feats.shape == (2, net.feature_dim)
+    assert torch.isfinite(logits).all() and torch.isfinite(feats).all()
+    logits.square().sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    for name, p in net.named_parameters():
+        if not name.startswith("backbone.fc."):  # the backbone's own classifier is never called
+            assert p.grad is not None and torch.isfinite(p.grad).all(), name
+
+
+@pytest.mark.parametrize("name", sorted(POINT_ENCODERS))
+def test_every_point_encoder_b2(name):
+    torch.manual_seed(0)
+    enc = build_point_encoder(name, out_features=7).train()
+    pts = torch.randn(2, 64, 3, requires_grad=True)
+    out = enc(pts)
+    assert out.shape == (2, 7) and torch.isfinite(out).all()
+    out.square().sum().backward()
+    assert torch.isfinite(pts.grad).all()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in enc.parameters())
+
+
+# --------------------------------------------------------------------------- DGCNN
+
+def test_dgcnn_neighbours_and_order_free():
+    from mvtn_exp.models.dgcnn import edge_features, knn
+
+    line = torch.tensor([[[0.0, 1.0, 3.0, 7.0, 15.0]]])  # [B=1, C=1, N=5]
+    assert knn(line, 2)[0].tolist() == [[0, 1], [1, 0], [2, 1], [3, 2], [4, 3]]
+    e = edge_features(line, 2)  # [1, 2, 5, 2]: (x_j - x_i, x_i)
+    assert e.shape == (1, 2, 5, 2) and e[0, 0, 3].tolist() == [0.0, -4.0] and e[0, 1, 3].tolist() == [7.0, 7.0]
+    torch.manual_seed(0)
+    net = build_point_encoder("dgcnn", out_features=6, k=5, emb_dims=32).eval()
+    pts = torch.randn(2, 40, 3, generator=torch.Generator().manual_seed(1))
+    perm = torch.randperm(40, generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(net(pts[:, perm]), net(pts), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="fewer than point_encoder.k=5"):
+        net(pts[:, :4])
+
+
+def test_dgcnn_k_checked_at_compose_time(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "point_encoder=dgcnn", "point_encoder.k=300",
+                        f"hydra.run.dir={tmp_path / 'run'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(err) == 1 and "Traceback" not in r.stderr, r.stderr[-800:]
+    assert "point_encoder.k=300" in err[0] and "selector.num_points=256" in err[0]
