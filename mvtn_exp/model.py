@@ -32,6 +32,13 @@ class MVTN(nn.Module):
         if shape not in SHAPES:
             raise ValueError(f"shape={shape!r}: expected one of {list(SHAPES)}")
         self.selector, self.renderer, self.mvnet, self.shape = selector, renderer, mvnet, shape
+        self.selector_frozen = False  # view transfer: G's weights and statistics fixed (engine/view_transfer.py)
+
+    def train(self, mode: bool = True) -> "MVTN":
+        super().train(mode)
+        if self.selector_frozen:
+            self.selector.eval()
+        return self
 
     def forward(self, batch: dict) -> dict:
         views = self.select(batch)

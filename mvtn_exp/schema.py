@@ -18,6 +18,7 @@ from typing import Any, Optional
 from .data.synthetic import ROTATIONS
 from .models.backbones import BACKBONES, FEATURE_DIMS
 from .models.multiview import MULTIVIEW, POOLS
+from .models.vit import check_image_size
 from .models.point_encoders import POINT_ENCODERS
 from .render.config import RendererConfig
 from .selectors import SELECTORS
@@ -154,6 +155,9 @@ class SelectorConfig:
     a parameter of G starting there, so G can shrink u0's pose-dependent tilt); ``poi_cache``: how
     many shapes' rotation-invariant point descriptors mvtn_poi keeps for later steps (0: computed
     at every step; 4096 shapes x 256 points: about 46 MB; ``selectors/invariant_cache.py``).
+    ``from_ckpt``: view transfer: G's weights from this checkpoint of another run, frozen, and C
+    trains on its views (``engine/view_transfer.py``; the checkpoint's views, selector and point
+    encoder settings must match).
     ``hypotheses`` (mvtn_poi): sets of M views G holds and the trainer tries side by side for
     ``optim.hypothesis_epochs``, keeping the one with the lowest loss (``selectors/hypotheses.py``).
     """
@@ -176,6 +180,7 @@ class SelectorConfig:
     noise_layout: str = "circular"
     noise_azim: float = 18.0
     noise_elev: float = 9.0
+    from_ckpt: Optional[str] = None
 
     @property
     def learned(self) -> bool:
@@ -187,6 +192,10 @@ class SelectorConfig:
         one_of("selector.sphere", self.sphere, ("equal_area", "fibonacci"))
         one_of("selector.regressor", self.regressor, REGRESSORS)
         one_of("selector.noise_layout", self.noise_layout, ("circular", "spherical"))
+        if self.from_ckpt and not self.learned:
+            raise ValueError(f"selector.from_ckpt={self.from_ckpt}: view transfer takes a learned G, got selector={self.name}")
+        if self.from_ckpt and self.hypotheses > 1:
+            raise ValueError("selector.from_ckpt with selector.hypotheses > 1: a transferred G is frozen, it races nothing")
         at_least("selector.noise_azim", self.noise_azim, 0.0)
         at_least("selector.noise_elev", self.noise_elev, 0.0)
         for key in ("azim_bound", "elev_bound"):
@@ -474,6 +483,9 @@ class TrainConfig:
         if self.optim.selector_grad == "smoothed" and self.selector.learn_distance:
             raise ValueError("optim.selector_grad=smoothed estimates G's azimuth and elevation gradients only; "
                              "selector.learn_distance=true needs optim.selector_grad=autograd")
+        if self.selector.from_ckpt and self.optim.flip_explore > 0:
+            raise ValueError("selector.from_ckpt with optim.flip_explore: a transferred G is frozen, its views are not "
+                             "turned round")
         if self.optim.flip_explore > 0 and not self.selector.learned:
             raise ValueError(f"optim.flip_explore={self.optim.flip_explore}: turning views round needs a learned "
                              f"selector, got selector={self.selector.name}")
@@ -493,6 +505,8 @@ class TrainConfig:
                 raise ValueError(f"point_encoder.k={self.point_encoder.k}: DGCNN needs at least k points, G reads {n} "
                                  f"(selector.num_points={self.selector.num_points}, dataset.num_points="
                                  f"{self.dataset.num_points})")
+        if self.backbone.name.startswith("vit_"):
+            check_image_size(self.backbone.name, self.image_size)
         if self.mvnet.name == "view_transformer":
             width = self.mvnet.width if self.mvnet.width is not None else FEATURE_DIMS[self.backbone.name]
             if width % self.mvnet.heads:

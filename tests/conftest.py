@@ -44,3 +44,17 @@ def random_triangles(n: int, seed: int, scale: float = 1.0, size: float = 0.5, d
     verts = (centres + (torch.rand(n, 3, 3, generator=g, dtype=dtype) * 2 - 1) * size).reshape(-1, 3)
     faces = torch.arange(3 * n).reshape(n, 3)
     return Meshes.from_list([verts], [faces])
+
+
+def tiny_config(cache, **kw) -> dict:
+    """A tiny config as a nested dict; ``kw`` keys may be dotted (``optim.lr_selector``)."""
+    cfg = {"views": 2, "image_size": 32, "epochs": 2, "batch_size": 8, "seed": 0,
+           "dataset": {"root": cache, "num_per_class": [4, 2, 2]}, "backbone": {"name": "small_cnn"},
+           "logger": {"progress": False, "tensorboard": False}}
+    for key, value in kw.items():
+        node = cfg
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return cfg

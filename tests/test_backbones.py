@@ -170,8 +170,8 @@ def test_forward_backward_every_backbone(name):
     for pname, p in model.named_parameters():
         assert p.grad is not None, pname
         assert torch.isfinite(p.grad).all(), pname
-    first_conv = next(model.parameters())  # gradient reaches the stem
-    assert first_conv.dim() == 4 and first_conv.grad.abs().sum() > 0
+    first_conv = next(p for p in model.parameters() if p.dim() == 4)  # gradient reaches the stem (ViT: patches)
+    assert first_conv.shape[1] == 3 and first_conv.grad.abs().sum() > 0
 
 
 def test_small_cnn_sizes():
@@ -194,4 +194,4 @@ def test_unknown_name_lists_allowed():
     assert "resnet101" in msg
     for name in ("resnet18", "resnet34", "resnet50", "small_cnn"):
         assert name in msg
-    assert set(BACKBONES) == {"resnet18", "resnet34", "resnet50", "small_cnn"}
+    assert set(BACKBONES) == {"resnet18", "resnet34", "resnet50", "small_cnn", "vit_tiny", "vit_small"}

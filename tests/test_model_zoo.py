@@ -19,6 +19,8 @@ from mvtn_exp.models.view_transformer import ViewTransformer
 from mvtn_exp.schema import EvalConfig
 from mvtn_exp.selectors import build_selector
 
+from conftest import tiny_config
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -28,18 +30,18 @@ def cache(tmp_path_factory) -> str:
 
 
 def _tiny(cache, **groups) -> dict:
-    cfg = {"views": 3, "image_size": 32, "epochs": 1, "batch_size": 8, "seed": 0,
-           "dataset": {"root": cache, "num_per_class": [4, 2, 2]}, "backbone": {"name": "small_cnn"},
-           "logger": {"progress": False, "tensorboard": False}}
-    cfg.update(groups)
-    return cfg
+    """``tiny_config`` at M = 3, one epoch; ``groups``: ``group={key: value}`` or ``key=value``."""
+    flat = {f"{g}.{k}": v for g, d in groups.items() if isinstance(d, dict) for k, v in d.items()}
+    flat.update({k: v for k, v in groups.items() if not isinstance(v, dict)})
+    return tiny_config(cache, **{"views": 3, "epochs": 1, **flat})
 
 
 @pytest.mark.parametrize("groups", [
     {"mvnet": {"name": "view_transformer", "blocks": 1, "heads": 2, "width": 32}},
     {"selector": {"name": "noisy", "noise_layout": "spherical"}},
     {"point_encoder": {"name": "dgcnn", "k": 8, "emb_dims": 64}},
-], ids=["view_transformer", "noisy", "dgcnn"])
+    {"backbone": {"name": "vit_tiny"}},
+], ids=["view_transformer", "noisy", "dgcnn", "vit_tiny"])
 def test_component_trains_evaluates_and_round_trips_a_checkpoint(cache, tmp_path, groups):
     """Train one epoch, then rebuild the model from best.pt's config alone and evaluate it: the
     same test accuracy and loss as the training run's own test pass."""
@@ -98,12 +100,19 @@ def test_view_transformer_bad_settings_are_one_line_errors():
     assert isinstance(_vt(), ViewTransformer)
 
 
-def test_view_transformer_heads_checked_at_compose_time(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "mvnet=view_transformer", "mvnet.heads=3",
-                        f"hydra.run.dir={tmp_path / 'run'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+@pytest.mark.parametrize("args,needles", [
+    (["mvnet=view_transformer", "mvnet.heads=3"], ["mvnet.heads=3", "backbone=small_cnn", "256"]),
+    (["point_encoder=dgcnn", "point_encoder.k=300"], ["point_encoder.k=300", "selector.num_points=256"]),
+    (["backbone=vit_tiny", "image_size=40"], ["image_size=40", "backbone=vit_tiny", "multiples of 16"]),
+], ids=["view_transformer_heads", "dgcnn_k", "vit_image_size"])
+def test_settings_a_component_cannot_take_fail_at_compose_time(tmp_path, args, needles):
+    """One line naming the keys and what is allowed, exit 2, no run folder."""
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", *args, f"hydra.run.dir={tmp_path / 'run'}"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=120)
     err = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(err) == 1 and "Traceback" not in r.stderr, r.stderr[-800:]
-    assert "mvnet.heads=3" in err[0] and "backbone=small_cnn" in err[0] and "256" in err[0]
+    for needle in needles:
+        assert needle in err[0], (needle, err[0])
     assert not (tmp_path / "run").exists()
 
 
@@ -158,7 +167,7 @@ def test_every_multiview_network_with_every_backbone(mvnet, backbone, M):
     logits.square().sum().backward()
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
     for name, p in net.named_parameters():
-        if not name.startswith("backbone.fc."):  # the backbone's own classifier is never called
+        if not name.startswith(f"backbone.{getattr(net.backbone, 'classifier', 'fc')}."):  # never called
             assert p.grad is not None and torch.isfinite(p.grad).all(), name
 
 
@@ -192,9 +201,64 @@ def test_dgcnn_neighbours_and_order_free():
         net(pts[:, :4])
 
 
-def test_dgcnn_k_checked_at_compose_time(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "point_encoder=dgcnn", "point_encoder.k=300",
-                        f"hydra.run.dir={tmp_path / 'run'}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
-    err = r.stderr.strip().splitlines()
-    assert r.returncode == 2 and len(err) == 1 and "Traceback" not in r.stderr, r.stderr[-800:]
-    assert "point_encoder.k=300" in err[0] and "selector.num_points=256" in err[0]
+# --------------------------------------------------------------------------- view transfer
+
+@pytest.fixture(scope="module")
+def source_run(cache, tmp_path_factory) -> Path:
+    run = tmp_path_factory.mktemp("source")
+    train(_tiny(cache, epochs=1), run)
+    return run / "best.pt"
+
+
+def test_view_transfer_trains_another_network_on_a_frozen_g(cache, source_run, tmp_path):
+    g0 = {k: v for k, v in checkpoint.load(source_run)["model"].items() if k.startswith("selector.")}
+    assert any("running_mean" in k for k in g0)  # G's BatchNorm statistics travel too
+    target = _tiny(cache, epochs=2, mvnet={"name": "late_fusion", "pool": "mean"},
+                   selector={"from_ckpt": str(source_run)})
+    metrics = train(target, tmp_path / "dst")
+    assert metrics["steps"] > 0
+    g1 = {k: v for k, v in checkpoint.load(tmp_path / "dst" / "best.pt")["model"].items() if k.startswith("selector.")}
+    assert g1.keys() == g0.keys() and all(torch.equal(g0[k], g1[k]) for k in g0)  # frozen: weights and statistics
+    again = evaluate_checkpoint(EvalConfig(ckpt=str(tmp_path / "dst" / "best.pt"), progress=False), tmp_path / "eval")
+    assert again["test_acc"] == metrics["test_acc"]
+
+
+def test_view_transfer_refuses_another_g(cache, source_run, tmp_path):
+    bad = _tiny(cache, views=2, selector={"from_ckpt": str(source_run)})
+    with pytest.raises(checkpoint.CheckpointMismatch, match=r"selector.from_ckpt=.*views: checkpoint=3 vs config=2"):
+        train(bad, tmp_path / "dst")
+    with pytest.raises(ValueError, match="view transfer takes a learned G, got selector=circular"):
+        as_config(_tiny(cache, selector={"name": "circular", "from_ckpt": str(source_run)}))
+
+
+# --------------------------------------------------------------------------- ViT backbones
+
+@pytest.mark.parametrize("name,params,dim", [("vit_tiny", 5_717_416, 192), ("vit_small", 22_050_664, 384)])
+def test_vit_parameters_and_keys_are_timms(name, params, dim):
+    net = build_backbone(name, 1000)
+    assert sum(p.numel() for p in net.parameters()) == params and net.feature_dim == dim
+    sd = net.state_dict()
+    want = {"cls_token": [1, 1, dim], "pos_embed": [1, 197, dim], "patch_embed.proj.weight": [dim, 3, 16, 16],
+            "blocks.11.attn.qkv.weight": [3 * dim, dim], "blocks.0.attn.proj.bias": [dim],
+            "blocks.5.mlp.fc1.weight": [4 * dim, dim], "blocks.5.mlp.fc2.weight": [dim, 4 * dim],
+            "blocks.3.norm1.weight": [dim], "blocks.3.norm2.bias": [dim], "norm.weight": [dim], "head.weight": [1000, dim]}
+    for key, shape in want.items():
+        assert list(sd[key].shape) == shape, key
+    assert not any(k.startswith("blocks.12.") for k in sd)
+
+
+def test_vit_weights_load_at_any_patch_multiple(tmp_path):
+    torch.manual_seed(0)
+    src = build_backbone("vit_tiny", 1000)
+    path = tmp_path / "vit_tiny_patch16_224.pth"
+    torch.save({"model": src.state_dict()}, path)
+    net = build_backbone("vit_tiny", 7, weights=path).eval()  # another class count: the head stays fresh
+    assert net.head.out_features == 7 and torch.equal(net.pos_embed, src.pos_embed)
+    x = torch.rand(2, 3, 224, 224, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        torch.testing.assert_close(net.features(x), src.eval().features(x))
+        assert net.position(14, 14) is net.pos_embed
+        small = net.features(x[:, :, :64, :48])  # a 4 x 3 grid: the embedding resampled
+    assert small.shape == (2, 192) and torch.isfinite(small).all()
+    with pytest.raises(ValueError, match="multiples of 16"):
+        net.features(x[:, :, :40, :40])

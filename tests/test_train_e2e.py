@@ -16,26 +16,14 @@ from mvtn_exp.engine.trainer import as_config, warmup_views
 from mvtn_exp.render import layouts
 from mvtn_exp.model import build_mvtn
 
+from conftest import tiny_config as tiny
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory) -> str:
     return str(tmp_path_factory.mktemp("synthetic_cache"))
-
-
-def tiny(cache, **kw) -> dict:
-    """A tiny config as a nested dict; ``kw`` keys may be dotted (``optim.lr_selector``)."""
-    cfg = {"views": 2, "image_size": 32, "epochs": 2, "batch_size": 8, "seed": 0,
-           "dataset": {"root": cache, "num_per_class": [4, 2, 2]}, "backbone": {"name": "small_cnn"},
-           "logger": {"progress": False, "tensorboard": False}}
-    for key, value in kw.items():
-        node = cfg
-        *parents, leaf = key.split(".")
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[leaf] = value
-    return cfg
 
 
 def tiny_model(cache, **kw):

@@ -38,6 +38,7 @@ from .view_stats import view_stats
 from .provenance import provenance
 from .run_logger import RunLogger
 from .step_timer import StepTimer
+from . import view_transfer
 
 log = logging.getLogger("mvtn-train")
 SPLITS = ("train", "val", "test")
@@ -379,7 +380,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
     origin = provenance(cfg.device)
     (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
     problem = (cfg.renderer.camera_gradient_problem()
-               if cfg.selector.learned and cfg.dataset.shape == "mesh" and cfg.optim.selector_grad == "autograd" else None)
+               if cfg.selector.learned and not cfg.selector.from_ckpt and cfg.dataset.shape == "mesh"
+               and cfg.optim.selector_grad == "autograd" else None)
     if problem:
         log.warning("learned selector with %s", problem)
 
@@ -393,6 +395,11 @@ def train(cfg, run_dir, build_model=None) -> dict:
     classes = list(datasets["train"].classes)
     loaders = {s: eval_loader(cfg, datasets[s]) for s in ("val", "test")}
     model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
+    if cfg.selector.from_ckpt:  # view transfer: G from another run, frozen (a resumed run has it in its own state)
+        if resume is None:
+            view_transfer.load_frozen_selector(model, cfg_dict, cfg.selector.from_ckpt)
+        else:
+            view_transfer.freeze_selector(model)
     opt, sched = make_optimizer(cfg, model)
     loss_fn = classification.loss_fn(cfg.task)
 

@@ -4,6 +4,7 @@
   ``state_dict`` keys and shapes are identical to torchvision's, so a torchvision
   ``.pth`` file loads with ``load_state_dict(strict=True)``.
 * ``SmallCNN`` / ``small_cnn``: a fast CPU backbone for tests and quick experiments.
+* ``vit_tiny`` / ``vit_small``: Vision Transformers with timm's key names (``vit.py``).
 
 Every model maps images ``[N, C, H, W] -> [N, num_classes]`` and exposes
 ``feature_dim`` plus ``features(x) -> [N, feature_dim]`` (the pooled vector before ``fc``).
@@ -173,8 +174,9 @@ def _fmt(items: list[str], limit: int = 5) -> str:
 def load_weights(model: nn.Module, path: PathLike) -> nn.Module:
     """Load a local state_dict file (plain, or under a 'state_dict'/'model' key) into ``model``.
 
-    If only the classifier's output size differs (``fc.weight`` is ``[K', feature_dim]``), every
-    other tensor is loaded and ``model.fc`` keeps its fresh initialisation. Missing
+    If only the classifier's output size differs (``fc.weight`` is ``[K', feature_dim]``; ``head``
+    for models whose ``classifier`` says so, the ViTs), every other tensor is loaded and the
+    classifier keeps its fresh initialisation. Missing
     ``*.num_batches_tracked`` buffers (old torchvision files) are tolerated.
     Raises FileNotFoundError / ValueError naming the file and the offending keys.
     """
@@ -194,10 +196,11 @@ def load_weights(model: nn.Module, path: PathLike) -> nn.Module:
         raise ValueError(f"'{path}' does not hold a state_dict (a mapping of names to tensors)")
     sd = dict(obj)
     own = model.state_dict()
-    fw, own_fw = sd.get("fc.weight"), own.get("fc.weight")
+    head = getattr(model, "classifier", "fc")
+    fw, own_fw = sd.get(f"{head}.weight"), own.get(f"{head}.weight")
     if (fw is not None and own_fw is not None and fw.dim() == 2
             and fw.shape[1] == own_fw.shape[1] and fw.shape[0] != own_fw.shape[0]):
-        sd["fc.weight"], sd["fc.bias"] = own["fc.weight"], own["fc.bias"]  # keep the fresh head
+        sd[f"{head}.weight"], sd[f"{head}.bias"] = own[f"{head}.weight"], own[f"{head}.bias"]  # keep the fresh head
     for k, v in own.items():
         if k.endswith("num_batches_tracked") and k not in sd:
             sd[k] = v
@@ -242,17 +245,30 @@ def small_cnn(num_classes: int = 1000, weights: Optional[PathLike] = None, in_ch
     return load_weights(model, weights) if weights is not None else model
 
 
-BACKBONES: dict[str, Callable[..., _Backbone]] = {
+def _vit(name: str) -> Callable[..., nn.Module]:
+    def build(num_classes: int = 1000, weights: Optional[PathLike] = None, in_channels: int = 3) -> nn.Module:
+        from . import vit
+
+        model = getattr(vit, name)(num_classes, in_channels=in_channels)
+        return load_weights(model, weights) if weights is not None else model
+
+    build.__doc__ = f"{name} (``models/vit.py``), optionally with a local timm-style weights file."
+    return build
+
+
+BACKBONES: dict[str, Callable[..., nn.Module]] = {
     "resnet18": resnet18,
     "resnet34": resnet34,
     "resnet50": resnet50,
     "small_cnn": small_cnn,
+    "vit_tiny": _vit("vit_tiny"),
+    "vit_small": _vit("vit_small"),
 }
 
 
 # ``feature_dim`` of each registered backbone as built by ``build_backbone`` (checked in the tests),
 # for settings validated before anything is built
-FEATURE_DIMS = {"resnet18": 512, "resnet34": 512, "resnet50": 2048, "small_cnn": 256}
+FEATURE_DIMS = {"resnet18": 512, "resnet34": 512, "resnet50": 2048, "small_cnn": 256, "vit_tiny": 192, "vit_small": 384}
 
 
 def build_backbone(name: str, num_classes: int, weights: Optional[PathLike] = None,
