@@ -59,7 +59,13 @@ def test_every_experiment_composes(name):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups
         assert cfg.views == 12 and cfg.image_size == 224 and cfg.epochs == 100 and cfg.batch_size == 20
-        assert cfg.backbone.name == "resnet18" and cfg.selector.learned
+        assert cfg.backbone.name == "resnet18"
+        if name.endswith("_noisy"):  # the paper's alternative: fixed circular views plus noise
+            assert cfg.selector.name == "noisy" and (cfg.selector.noise_azim, cfg.selector.noise_elev) == (18.0, 9.0)
+        else:
+            assert cfg.selector.learned
+        if name.endswith("_dgcnn"):
+            assert cfg.point_encoder.name == "dgcnn" and cfg.point_encoder.k == 20
         # the paper's text (MVCNN 3e-4, views network 1e-3), not the official code's 1e-3 / 1e-4
         assert cfg.optim.lr == 3e-4 and cfg.optim.lr_selector == 1e-3 and cfg.optim.clip_selector == 30
         assert cfg.selector.regressor == "official"  # the official code's G
