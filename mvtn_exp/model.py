@@ -12,6 +12,7 @@ from .render.renderer import MultiViewRenderer
 from .schema import SHAPES, TrainConfig
 from .selectors import build_selector
 from .selectors.hypotheses import HypothesisRace
+from .selectors.optimized import OptimizedSelector, optimize_views
 from .selectors.polarity import ViewPolarity
 
 
@@ -61,17 +62,23 @@ class MVTN(nn.Module):
         if all_hypotheses:
             return self.selector(points.to(self.device), all_hypotheses=True)
         views = self.selector(points.to(self.device))
+        if isinstance(self.selector, OptimizedSelector):  # per-batch steps on the views (selectors/optimized.py)
+            views = optimize_views(self, batch, views, self.selector)
         return views if self.polarity is None else self.polarity(views)
 
-    def render(self, batch: dict, azim, elev, dist):
-        """R: the batch's shapes seen from ``[B, M]`` views -> images ``[B, M, 3, H, W]``."""
+    def render_output(self, batch: dict, azim, elev, dist):
+        """R: the batch's shapes seen from ``[B, M]`` views -> ``RenderOutput`` (images and coverage)."""
         if self.shape == "points":
             shapes = PointClouds.from_padded(batch["points"].to(self.device))
         else:
             if batch.get("meshes") is None:
                 raise ValueError("MVTN(shape='mesh'): the batch carries no meshes")
             shapes = batch["meshes"].to(self.device)
-        return self.renderer(shapes, azim, elev, dist).images
+        return self.renderer(shapes, azim, elev, dist)
+
+    def render(self, batch: dict, azim, elev, dist):
+        """R: the batch's shapes seen from ``[B, M]`` views -> images ``[B, M, 3, H, W]``."""
+        return self.render_output(batch, azim, elev, dist).images
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """``{"mvnet": C's parameters, "selector": G's parameters}`` (G's list is empty for fixed layouts)."""
@@ -88,8 +95,11 @@ def build_selector_from(cfg: TrainConfig) -> nn.Module:
         return build_selector("circular", cfg.views, elevation=s.elevation, distance=s.distance)
     if s.name == "spherical":
         return build_selector("spherical", cfg.views, distance=s.distance, sphere=s.sphere)
+    if s.name == "optimized":
+        return build_selector("optimized", cfg.views, layout=s.base_layout, steps=s.opt_steps, lr=s.opt_lr,
+                              objective=s.opt_objective, elevation=s.elevation, distance=s.distance, sphere=s.sphere)
     if s.name == "noisy":
-        return build_selector("noisy", cfg.views, layout=s.noise_layout, azim_std=s.noise_azim, elev_std=s.noise_elev,
+        return build_selector("noisy", cfg.views, layout=s.base_layout, azim_std=s.noise_azim, elev_std=s.noise_elev,
                               elevation=s.elevation, distance=s.distance, sphere=s.sphere)
     if s.name == "mvtn_poi":
         return build_selector("mvtn_poi", cfg.views, distance=s.distance, gain=s.poi_gain, sphere=s.sphere,

@@ -23,6 +23,7 @@ from .models.point_encoders import POINT_ENCODERS
 from .render.config import RendererConfig
 from .selectors import SELECTORS
 from .selectors.mvtn import REGRESSORS
+from .selectors.optimized import OBJECTIVES
 
 DATASETS = ("synthetic", "synthetic_views", "modelnet40", "scanobjectnn", "shapenet")
 SHAPES = ("mesh", "points")
@@ -131,9 +132,11 @@ class DatasetConfig:
 @dataclass
 class SelectorConfig:
     """The view selector G (``selectors/``). Fixed: circular | spherical | random | noisy (the
-    paper's alternative: ``noise_layout`` circular or spherical plus Gaussian noise of
+    paper's alternative: ``base_layout`` circular or spherical plus Gaussian noise of
     ``noise_azim`` / ``noise_elev`` degrees std, redrawn at every training step; none at
-    evaluation); learned:
+    evaluation) | optimized (the paper's scene-parameter optimisation: the ``base_layout``
+    layout, then ``opt_steps`` gradient steps of size ``opt_lr`` on each batch's views against
+    ``opt_objective`` of the current C, labels included; ``selectors/optimized.py``); learned:
     mvtn_direct (the paper's: u = u_bound * tanh(G(S))) | mvtn_direct_offset | mvtn_circular |
     mvtn_spherical (u = u0 + u_bound * tanh(G(S, u0))) | mvtn_poi (experimental).
 
@@ -177,10 +180,13 @@ class SelectorConfig:
     poi_learn_gain: bool = False
     hypotheses: int = 1
     regressor: str = "compact"
-    noise_layout: str = "circular"
+    base_layout: str = "circular"
     noise_azim: float = 18.0
     noise_elev: float = 9.0
     from_ckpt: Optional[str] = None
+    opt_steps: int = 10
+    opt_lr: float = 50.0
+    opt_objective: str = "min_ce"
 
     @property
     def learned(self) -> bool:
@@ -191,7 +197,10 @@ class SelectorConfig:
         at_least("selector.distance", self.distance, 0.0, strict=True)
         one_of("selector.sphere", self.sphere, ("equal_area", "fibonacci"))
         one_of("selector.regressor", self.regressor, REGRESSORS)
-        one_of("selector.noise_layout", self.noise_layout, ("circular", "spherical"))
+        one_of("selector.base_layout", self.base_layout, ("circular", "spherical"))
+        one_of("selector.opt_objective", self.opt_objective, OBJECTIVES)
+        at_least("selector.opt_steps", self.opt_steps, 0)
+        at_least("selector.opt_lr", self.opt_lr, 0.0, strict=True)
         if self.from_ckpt and not self.learned:
             raise ValueError(f"selector.from_ckpt={self.from_ckpt}: view transfer takes a learned G, got selector={self.name}")
         if self.from_ckpt and self.hypotheses > 1:

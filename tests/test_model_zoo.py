@@ -38,10 +38,11 @@ def _tiny(cache, **groups) -> dict:
 
 @pytest.mark.parametrize("groups", [
     {"mvnet": {"name": "view_transformer", "blocks": 1, "heads": 2, "width": 32}},
-    {"selector": {"name": "noisy", "noise_layout": "spherical"}},
+    {"selector": {"name": "noisy", "base_layout": "spherical"}},
     {"point_encoder": {"name": "dgcnn", "k": 8, "emb_dims": 64}},
     {"backbone": {"name": "vit_tiny"}},
-], ids=["view_transformer", "noisy", "dgcnn", "vit_tiny"])
+    {"selector": {"name": "optimized", "opt_steps": 1, "opt_lr": 25.0, "opt_objective": "margin"}},
+], ids=["view_transformer", "noisy", "dgcnn", "vit_tiny", "optimized"])
 def test_component_trains_evaluates_and_round_trips_a_checkpoint(cache, tmp_path, groups):
     """Train one epoch, then rebuild the model from best.pt's config alone and evaluate it: the
     same test accuracy and loss as the training run's own test pass."""
@@ -262,3 +263,41 @@ def test_vit_weights_load_at_any_patch_multiple(tmp_path):
     assert small.shape == (2, 192) and torch.isfinite(small).all()
     with pytest.raises(ValueError, match="multiples of 16"):
         net.features(x[:, :, :40, :40])
+
+
+# --------------------------------------------------------------------------- scene-parameter optimisation
+
+@pytest.mark.parametrize("objective", ["min_ce", "max_ce", "max_coverage", "min_coverage", "margin"])
+def test_optimized_views_move_the_objective_the_right_way(cache, objective):
+    from mvtn_exp.data.collate import collate_shapes
+    from mvtn_exp.engine.trainer import make_datasets
+    from mvtn_exp.model import build_mvtn
+    from mvtn_exp.selectors.optimized import objective_value, optimize_views
+
+    cfg = as_config(_tiny(cache, selector={"name": "optimized", "opt_steps": 3, "opt_lr": 20.0,
+                                           "opt_objective": objective}))
+    ds = make_datasets(cfg)["test"]
+    torch.manual_seed(0)
+    model = build_mvtn(cfg, len(ds.classes)).train()
+    model.renderer.eval()  # evaluation light and colour: the objective is a function of the views alone
+    batch = collate_shapes([ds[i] for i in range(6)])
+    stats = {k: v.clone() for k, v in model.mvnet.state_dict().items() if "running" in k}
+
+    def value(views):
+        out = model.render_output(batch, *views)
+        with torch.no_grad():
+            model.mvnet.eval()
+            logits, _ = model.mvnet(out.images)
+            model.mvnet.train()
+        coverage = out.alpha.reshape(6, -1).mean(1)
+        return float(objective_value(objective, logits, batch["labels"], coverage).sum())
+
+    start = model.selector(batch["points"])
+    moved = optimize_views(model, batch, start, model.selector)
+    assert not torch.equal(moved[0], start[0]) and not moved[0].requires_grad
+    assert value(moved) < value(start)  # the steps decrease the objective
+    assert model.mvnet.training and all(p.grad is None for p in model.parameters())
+    assert all(torch.equal(v, model.mvnet.state_dict()[k]) for k, v in stats.items())  # C's statistics untouched
+    views = model.select(batch)  # MVTN.select runs the steps, under no_grad too (evaluation)
+    with torch.no_grad():
+        assert not torch.equal(model.select(batch)[0], start[0]) and torch.isfinite(views[0]).all()

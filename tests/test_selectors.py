@@ -5,7 +5,7 @@ from mvtn_exp.render import layouts
 from mvtn_exp.selectors import (SELECTORS, VARIANTS, MVTNSelector, RandomSelector, build_selector)
 from mvtn_exp.selectors.mvtn import REGRESSORS, regressor_parameters
 
-FIXED = ["circular", "spherical", "random", "noisy"]
+FIXED = ["circular", "spherical", "random", "noisy", "optimized"]
 LEARNED = ["mvtn_direct", "mvtn_direct_offset", "mvtn_circular", "mvtn_spherical", "mvtn_poi"]
 
 
@@ -15,7 +15,7 @@ def clouds(B=3, N=32, seed=0, dtype=torch.float32):
 
 def test_registry_names():
     assert set(SELECTORS) == set(FIXED + LEARNED)
-    allowed = ("allowed: circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, noisy, random, "
+    allowed = ("allowed: circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, noisy, optimized, random, "
                "spherical")
     with pytest.raises(ValueError, match=allowed):
         build_selector("mvtn_free", 4)

@@ -24,6 +24,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from ..bench.memory import PeakMemory
+from ..selectors.optimized import OptimizedSelector
 
 RENDERER_NOTE = ("FLOPs do not describe the renderer (face search, sorting and scattering per pixel): "
                  "its cost is render_ms_per_shape and render_pixels_per_shape")
@@ -35,13 +36,19 @@ def parameter_counts(model) -> dict[str, int]:
 
 
 def flops_per_shape(model, batch: dict) -> dict[str, float]:
-    """Forward FLOPs per shape of G (``model.select``) and C (``model.mvnet``) on ``batch``, eval mode."""
+    """Forward FLOPs per shape of G (``model.select``) and C (``model.mvnet``) on ``batch``, eval mode.
+
+    ``selector=optimized``: G counts its starting layout only (no FLOPs); its per-batch steps
+    (``opt_steps`` renders with C forward and backward) show in the run's seconds, not here."""
     B = len(batch["labels"])
     was = model.training
     model.eval()
+    optimized = isinstance(getattr(model, "selector", None), OptimizedSelector)
     try:
         with torch.no_grad():
             with FlopCounterMode(display=False) as g_count:
+                views = model.selector(batch["points"].to(model.device)) if optimized else model.select(batch)
+            if optimized:
                 views = model.select(batch)
             images = model.render(batch, *views)
             with FlopCounterMode(display=False) as c_count:

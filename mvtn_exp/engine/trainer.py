@@ -379,11 +379,12 @@ def train(cfg, run_dir, build_model=None) -> dict:
     cfg_dict = config_dict(cfg)
     origin = provenance(cfg.device)
     (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
+    steps_on_views = cfg.selector.name == "optimized" and cfg.selector.opt_steps > 0
     problem = (cfg.renderer.camera_gradient_problem()
-               if cfg.selector.learned and not cfg.selector.from_ckpt and cfg.dataset.shape == "mesh"
-               and cfg.optim.selector_grad == "autograd" else None)
+               if ((cfg.selector.learned and not cfg.selector.from_ckpt and cfg.optim.selector_grad == "autograd")
+                   or steps_on_views) and cfg.dataset.shape == "mesh" else None)
     if problem:
-        log.warning("learned selector with %s", problem)
+        log.warning("%s with %s", "selector=optimized" if steps_on_views else "learned selector", problem)
 
     resume = None
     if cfg.ckpt_path:

@@ -10,6 +10,7 @@ from typing import Callable
 from mvtn_exp.selectors.fixed import (CircularSelector, NoisySelector, RandomSelector, SphericalSelector,
                                       ViewSelector, check_views)
 from mvtn_exp.selectors.mvtn import VARIANTS, MVTNSelector
+from mvtn_exp.selectors.optimized import OptimizedSelector
 from mvtn_exp.selectors.poi import PointOfInterestSelector
 
 
@@ -38,6 +39,7 @@ SELECTORS: dict[str, Callable[..., ViewSelector]] = {
     "spherical": SphericalSelector,
     "random": RandomSelector,
     "noisy": NoisySelector,
+    "optimized": OptimizedSelector,
     "mvtn_direct": mvtn_direct,
     "mvtn_direct_offset": mvtn_direct_offset,
     "mvtn_circular": mvtn_circular,
@@ -55,7 +57,7 @@ def build_selector(name: str, views: int, **kw) -> ViewSelector:
 
 
 __all__ = [
-    "SELECTORS", "VARIANTS", "CircularSelector", "MVTNSelector", "NoisySelector", "RandomSelector", "SphericalSelector",
+    "SELECTORS", "VARIANTS", "CircularSelector", "MVTNSelector", "NoisySelector", "OptimizedSelector", "RandomSelector", "SphericalSelector",
     "PointOfInterestSelector", "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct", "mvtn_direct_offset",
     "mvtn_spherical",
 ]
