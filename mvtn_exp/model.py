@@ -44,7 +44,7 @@ class MVTN(nn.Module):
     def forward(self, batch: dict) -> dict:
         views = self.select(batch)
         images = self.render(batch, *views)
-        logits, features = self.mvnet(images)
+        logits, features = self.mvnet(images, views)
         return {"logits": logits, "features": features, "azim": views[0], "elev": views[1], "dist": views[2],
                 "images": images}
 

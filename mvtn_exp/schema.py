@@ -266,7 +266,10 @@ class MVNetConfig:
     """The multi-view network C: mvcnn (pool features over views) | late_fusion (pool logits) |
     view_transformer (``blocks`` self-attention blocks with ``heads`` heads over the view features
     as a set, tokens ``width`` wide (null: the backbone's feature size), then ``pool``;
-    ``models/view_transformer.py``)."""
+    ``models/view_transformer.py``) | viewgcn (a graph over the view positions, ``k`` neighbours,
+    M >= 2; ``models/viewgcn.py``). ``stages``: ``[S1, S2]`` (viewgcn only) trains S1 epochs on
+    single views, then S2 epochs of the whole network; S1 + S2 must equal ``epochs``; the learning
+    rate schedule runs over each stage on its own, and model selection counts stage 2 only."""
 
     name: str = "mvcnn"
     pool: str = "max"
@@ -275,6 +278,8 @@ class MVNetConfig:
     heads: int = 4
     width: Optional[int] = None
     mlp_ratio: float = 2.0
+    k: int = 4
+    stages: Optional[list[int]] = None
 
     def validate(self) -> "MVNetConfig":
         one_of("mvnet", self.name, MVNET_NAMES)
@@ -285,6 +290,16 @@ class MVNetConfig:
         if self.width is not None:
             at_least("mvnet.width", self.width, 1)
         at_least("mvnet.mlp_ratio", self.mlp_ratio, 0.0, strict=True)
+        at_least("mvnet.k", self.k, 1)
+        if self.stages is not None:
+            if self.name != "viewgcn":
+                raise ValueError(f"mvnet.stages={list(self.stages)}: two-stage training is ViewGCN's (mvnet=viewgcn); "
+                                 f"got mvnet={self.name}")
+            if len(self.stages) != 2 or any(int(s) != s or s < 1 for s in self.stages):
+                raise ValueError(f"mvnet.stages={list(self.stages)}: expected [S1, S2], two whole numbers of epochs >= 1 "
+                                 "(single views, then the whole network)")
+        if self.name == "viewgcn" and self.pool != "max":
+            raise ValueError(f"mvnet.pool={self.pool}: ViewGCN max-pools each level; use mvnet.pool=max")
         return self
 
     def kwargs(self) -> dict:
@@ -292,6 +307,8 @@ class MVNetConfig:
         kw = dict(pool=self.pool, dropout=self.dropout)
         if self.name == "view_transformer":
             kw.update(blocks=self.blocks, heads=self.heads, width=self.width, mlp_ratio=self.mlp_ratio)
+        if self.name == "viewgcn":
+            kw.update(k=self.k)
         return kw
 
 
@@ -522,6 +539,8 @@ class TrainConfig:
                 raise ValueError(f"mvnet.heads={self.mvnet.heads} must divide the view transformer's token width "
                                  f"{width} (mvnet.width={self.mvnet.width}; null takes backbone={self.backbone.name}'s "
                                  f"feature size {FEATURE_DIMS[self.backbone.name]})")
+        if self.mvnet.name == "viewgcn":
+            check_viewgcn(self)
         n_warm = self.optim.warmup_num_views
         if n_warm is not None and n_warm != self.views and self.optim.warmup_views == "u0":
             raise ValueError(f"optim.warmup_num_views={n_warm} with optim.warmup_views=u0: G's initial views are "
@@ -531,6 +550,22 @@ class TrainConfig:
                              "set the top-level image_size")
         self.renderer.validate()
         return self
+
+
+def check_viewgcn(cfg: "TrainConfig") -> None:
+    """One-line errors naming the keys for settings ViewGCN cannot take (its graph needs M >= 2)."""
+    if cfg.views < 2:
+        raise ValueError(f"views={cfg.views}: mvnet=viewgcn builds a graph over the views and needs views >= 2")
+    n_warm = cfg.optim.warmup_num_views
+    if n_warm is not None and n_warm < 2:
+        raise ValueError(f"optim.warmup_num_views={n_warm}: mvnet=viewgcn needs at least 2 views")
+    if cfg.selector.hypotheses > 1:
+        raise ValueError(f"selector.hypotheses={cfg.selector.hypotheses} with mvnet=viewgcn: racing hypotheses "
+                         "is for MVCNN-style networks; use selector.hypotheses=1")
+    stages = cfg.mvnet.stages
+    if stages is not None and sum(stages) != cfg.epochs:
+        raise ValueError(f"mvnet.stages={list(stages)} sums to {sum(stages)} epochs but epochs={cfg.epochs}: "
+                         f"set epochs={sum(stages)} or change the stages")
 
 
 @dataclass

@@ -66,11 +66,37 @@ def test_every_experiment_composes(name):
             assert cfg.selector.learned
         if name.endswith("_dgcnn"):
             assert cfg.point_encoder.name == "dgcnn" and cfg.point_encoder.k == 20
-        # the paper's text (MVCNN 3e-4, views network 1e-3), not the official code's 1e-3 / 1e-4
-        assert cfg.optim.lr == 3e-4 and cfg.optim.lr_selector == 1e-3 and cfg.optim.clip_selector == 30
+        # the paper's text (MVCNN 3e-4, ViewGCN 1e-3, views network 1e-3), not the official code's 1e-3 / 1e-4
+        assert cfg.optim.lr == (1e-3 if cfg.mvnet.name == "viewgcn" else 3e-4)
+        assert cfg.optim.lr_selector == 1e-3 and cfg.optim.clip_selector == 30
+        if "viewgcn" in name:  # two stages: single views, then the whole network
+            assert cfg.mvnet.name == "viewgcn" and len(cfg.mvnet.stages) == 2 and sum(cfg.mvnet.stages) == cfg.epochs
         assert cfg.selector.regressor == "official"  # the official code's G
     text = (CONF / "experiment" / f"{name}.yaml").read_text()
     assert text.startswith("# @package _global_")
+
+
+@pytest.mark.parametrize("name", [n for n in _options("experiment")
+                                  if "sweeper" in (CONF / "experiment" / f"{n}.yaml").read_text()])
+def test_every_job_of_a_sweep_experiment_composes(name):
+    """Every combination in an experiment's ``hydra.sweeper.params`` composes and validates (a
+    sweep never starts jobs that would be refused), and the grid has the size its comment says."""
+    import itertools
+
+    params = OmegaConf.load(CONF / "experiment" / f"{name}.yaml").hydra.sweeper.params
+    grid = [[f"{key}={value.strip()}" for value in str(values).split(",")] for key, values in params.items()]
+    jobs = list(itertools.product(*grid))
+    assert len(jobs) > 1
+    seen = set()
+    with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
+        composed = [compose("train", overrides=[f"+experiment={name}", *job]) for job in jobs]
+    for c in composed:
+        cfg = OmegaConf.to_object(c).validate()
+        seen.add((cfg.views, cfg.selector.name, cfg.mvnet.name, cfg.backbone.name, cfg.point_encoder.name,
+                  cfg.selector.learn_distance, cfg.dataset.variant, cfg.renderer.mode, cfg.image_size, cfg.seed))
+    assert len(seen) == len(jobs)  # every job is a different setting
+    text = (CONF / "experiment" / f"{name}.yaml").read_text()
+    assert f"{len(jobs)} jobs" in text
 
 
 def test_synthetic_experiments_select_their_views():

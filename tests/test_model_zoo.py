@@ -42,7 +42,8 @@ def _tiny(cache, **groups) -> dict:
     {"point_encoder": {"name": "dgcnn", "k": 8, "emb_dims": 64}},
     {"backbone": {"name": "vit_tiny"}},
     {"selector": {"name": "optimized", "opt_steps": 1, "opt_lr": 25.0, "opt_objective": "margin"}},
-], ids=["view_transformer", "noisy", "dgcnn", "vit_tiny", "optimized"])
+    {"mvnet": {"name": "viewgcn", "stages": [1, 1], "k": 2}, "epochs": 2},
+], ids=["view_transformer", "noisy", "dgcnn", "vit_tiny", "optimized", "viewgcn"])
 def test_component_trains_evaluates_and_round_trips_a_checkpoint(cache, tmp_path, groups):
     """Train one epoch, then rebuild the model from best.pt's config alone and evaluate it: the
     same test accuracy and loss as the training run's own test pass."""
@@ -105,7 +106,8 @@ def test_view_transformer_bad_settings_are_one_line_errors():
     (["mvnet=view_transformer", "mvnet.heads=3"], ["mvnet.heads=3", "backbone=small_cnn", "256"]),
     (["point_encoder=dgcnn", "point_encoder.k=300"], ["point_encoder.k=300", "selector.num_points=256"]),
     (["backbone=vit_tiny", "image_size=40"], ["image_size=40", "backbone=vit_tiny", "multiples of 16"]),
-], ids=["view_transformer_heads", "dgcnn_k", "vit_image_size"])
+    (["mvnet=viewgcn", "views=1"], ["views=1", "mvnet=viewgcn", "views >= 2"]),
+], ids=["view_transformer_heads", "dgcnn_k", "vit_image_size", "viewgcn_m1"])
 def test_settings_a_component_cannot_take_fail_at_compose_time(tmp_path, args, needles):
     """One line naming the keys and what is allowed, exit 2, no run folder."""
     r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", *args, f"hydra.run.dir={tmp_path / 'run'}"],
@@ -115,6 +117,24 @@ def test_settings_a_component_cannot_take_fail_at_compose_time(tmp_path, args, n
     for needle in needles:
         assert needle in err[0], (needle, err[0])
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("settings,needles", [
+    ({"mvnet": {"name": "viewgcn", "stages": [3, 4]}, "epochs": 8}, ["mvnet.stages=[3, 4]", "epochs=8", "epochs=7"]),
+    ({"mvnet": {"stages": [3, 5]}, "epochs": 8}, ["mvnet.stages=[3, 5]", "mvnet=viewgcn", "mvnet=mvcnn"]),
+    ({"mvnet": {"name": "viewgcn", "stages": [0, 8]}, "epochs": 8}, ["mvnet.stages=[0, 8]", ">= 1"]),
+    ({"mvnet": {"name": "viewgcn", "pool": "mean"}}, ["mvnet.pool=mean", "pool=max"]),
+    ({"mvnet": {"name": "viewgcn"}, "optim": {"warmup_num_views": 1, "selector_warmup_epochs": 1, "warmup_views": "spherical"}},
+     ["optim.warmup_num_views=1", "at least 2"]),
+    ({"mvnet": {"name": "viewgcn"}, "selector": {"name": "mvtn_poi", "hypotheses": 4},
+      "optim": {"hypothesis_epochs": 2}}, ["selector.hypotheses=4", "mvnet=viewgcn"]),
+], ids=["stages_sum", "stages_not_viewgcn", "stage_zero", "pool", "warmup_views", "hypotheses"])
+def test_viewgcn_settings_it_cannot_take_are_refused_naming_the_keys(cache, settings, needles):
+    """The same validation runs at compose time (the subprocess test above checks the CLI's one line)."""
+    with pytest.raises(ValueError) as err:
+        as_config(_tiny(cache, views=4, **settings))
+    for needle in needles:
+        assert needle in str(err.value), (needle, str(err.value))
 
 
 def test_feature_dims_table_matches_the_backbones():
@@ -162,13 +182,22 @@ def test_every_multiview_network_with_every_backbone(mvnet, backbone, M):
     torch.manual_seed(0)
     net = build_multiview(mvnet, backbone, 4).train()
     x = torch.rand(2, M, 3, 32, 32, requires_grad=True)
-    logits, feats = net(x)
+    azim, elev = torch.rand(2, M) * 360, (torch.rand(2, M) * 180 - 90)
+    views = (azim.requires_grad_(True), elev.requires_grad_(True), torch.full((2, M), 2.2))
+    if net.needs_views and M < 2:  # a graph over the views needs two of them (ViewGCN)
+        with pytest.raises(ValueError, match="M >= 2"):
+            net(x, views)
+        return
+    logits, feats = net(x, views)
     assert logits.shape == (2, 4) and feats.shape == (2, net.feature_dim)
     assert torch.isfinite(logits).all() and torch.isfinite(feats).all()
-    logits.square().sum().backward()
+    net.training_loss(logits, torch.tensor([0, 3]), lambda z, y: z.square().sum()).backward()
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    if net.needs_views:  # the view positions shape the graph: the cameras get a gradient through C
+        assert torch.isfinite(azim.grad).all() and torch.isfinite(elev.grad).all() and elev.grad.abs().sum() > 0
+    unused = (f"backbone.{getattr(net.backbone, 'classifier', 'fc')}.", "single_view_head.")  # never called / stage 1
     for name, p in net.named_parameters():
-        if not name.startswith(f"backbone.{getattr(net.backbone, 'classifier', 'fc')}."):  # never called
+        if not name.startswith(unused):
             assert p.grad is not None and torch.isfinite(p.grad).all(), name
 
 
@@ -301,3 +330,114 @@ def test_optimized_views_move_the_objective_the_right_way(cache, objective):
     views = model.select(batch)  # MVTN.select runs the steps, under no_grad too (evaluation)
     with torch.no_grad():
         assert not torch.equal(model.select(batch)[0], start[0]) and torch.isfinite(views[0]).all()
+
+
+# --------------------------------------------------------------------------- ViewGCN
+
+def _gcn(cache, **kw) -> dict:
+    """ViewGCN on the tiny config: M = 4, one single-view epoch, then two of the whole network."""
+    return _tiny(cache, mvnet={"name": "viewgcn", "stages": [1, 2], "k": 3}, views=4, epochs=3,
+                 selector={"name": "mvtn_spherical"}, **kw)
+
+
+@pytest.fixture(scope="module")
+def gcn_run(cache, tmp_path_factory):
+    run = tmp_path_factory.mktemp("gcn_full")
+    return run, train(_gcn(cache), run)
+
+
+@pytest.mark.parametrize("crash_epoch", [2, 3], ids=["at_the_boundary", "in_stage_2"])
+def test_viewgcn_resume_across_the_stage_boundary_is_exact(cache, gcn_run, tmp_path, monkeypatch, crash_epoch):
+    """Killed in the middle of epoch 2 (the first of stage 2: last.pt is stage 1's) or of epoch 3,
+    then resumed from last.pt: the same history and test metrics as the run that was not stopped."""
+    from mvtn_exp.model import MVTN
+
+    _, full = gcn_run
+    steps = -(-12 * 4 // 8)  # 12 classes x 4 shapes, batch 8
+    calls, real = {"n": 0}, MVTN.render
+
+    def render(self, batch, *views):
+        if self.training:
+            calls["n"] += 1
+            if calls["n"] == steps * (crash_epoch - 1) + 2:
+                raise RuntimeError("killed")
+        return real(self, batch, *views)
+
+    monkeypatch.setattr(MVTN, "render", render)
+    with pytest.raises(RuntimeError, match="killed"):
+        train(_gcn(cache), tmp_path / "crashed")
+    monkeypatch.setattr(MVTN, "render", real)
+    assert checkpoint.load(tmp_path / "crashed" / "last.pt")["epoch"] == crash_epoch - 1
+    resumed = train(_gcn(cache, ckpt_path=str(tmp_path / "crashed" / "last.pt")), tmp_path / "resumed")
+    for a, b in zip(resumed["history"], full["history"], strict=True):
+        assert a["train_loss"] == pytest.approx(b["train_loss"], abs=1e-6) and a["val_acc"] == b["val_acc"]
+    assert resumed["test_acc"] == full["test_acc"] and resumed["best_epoch"] == full["best_epoch"]
+
+
+def _crash_in_epoch(monkeypatch, epoch: int) -> None:
+    """Make the training render raise at the second step of ``epoch`` (1-based; tiny: 6 steps an epoch)."""
+    from mvtn_exp.model import MVTN
+
+    steps = -(-12 * 4 // 8)  # 12 classes x 4 shapes, batch 8
+    calls, real = {"n": 0}, MVTN.render
+
+    def render(self, batch, *views):
+        if self.training:
+            calls["n"] += 1
+            if calls["n"] == steps * (epoch - 1) + 2:
+                raise RuntimeError("killed")
+        return real(self, batch, *views)
+
+    monkeypatch.setattr(MVTN, "render", render)
+
+
+@pytest.mark.parametrize("crash_epoch", [2, 3], ids=["at_the_boundary", "in_stage_2"])
+def test_viewgcn_resume_across_the_stage_boundary_is_exact(cache, gcn_run, tmp_path, monkeypatch, crash_epoch):
+    """Killed in the middle of epoch 2 (the first of stage 2: last.pt is stage 1's) or of epoch 3,
+    then resumed from last.pt: the same history and test metrics as the run that was not stopped."""
+    _, full = gcn_run
+    with monkeypatch.context() as m:
+        _crash_in_epoch(m, crash_epoch)
+        with pytest.raises(RuntimeError, match="killed"):
+            train(_gcn(cache), tmp_path / "crashed")
+    assert checkpoint.load(tmp_path / "crashed" / "last.pt")["epoch"] == crash_epoch - 1
+    resumed = train(_gcn(cache, ckpt_path=str(tmp_path / "crashed" / "last.pt")), tmp_path / "resumed")
+    for a, b in zip(resumed["history"], full["history"], strict=True):
+        assert a["train_loss"] == pytest.approx(b["train_loss"], abs=1e-6) and a["val_acc"] == b["val_acc"]
+    assert resumed["test_acc"] == full["test_acc"] and resumed["best_epoch"] == full["best_epoch"]
+
+
+def test_viewgcn_stages_single_views_first_then_the_graph(cache, gcn_run, tmp_path, monkeypatch):
+    """Stage 1 trains the backbone and the single-view head only (G frozen on its initial views,
+    the graph untouched); each stage has its own learning-rate schedule; model selection counts
+    stage 2 only, and the best checkpoint is evaluated as a whole ViewGCN."""
+    import copy
+
+    from mvtn_exp.model import build_mvtn
+
+    run, full = gcn_run
+    cfg = as_config(_gcn(cache))
+    built = {}
+
+    def build(c, num_classes):  # the model as train() builds it, before any step
+        model = build_mvtn(c, num_classes)
+        built["init"] = copy.deepcopy(model.state_dict())
+        return model
+    best = checkpoint.load(run / "best.pt")
+    assert int(best["model"]["mvnet.stage"]) == 2 and full["best_epoch"] >= 2
+    assert "epoch 2: ViewGCN stage 2" in (run / "train.log").read_text()
+    lrs = [h["lr_mvnet"] for h in full["history"]]
+    assert lrs[0] == lrs[1] == pytest.approx(cfg.optim.lr) and lrs[2] < lrs[1]  # the schedule restarts at stage 2
+    assert full["history"][0]["view_offset_azim"] == 0.0  # stage 1 renders G's initial views
+    with monkeypatch.context() as m:
+        _crash_in_epoch(m, 2)
+        with pytest.raises(RuntimeError, match="killed"):
+            train(_gcn(cache), tmp_path / "stage1", build_model=build)
+    init = built["init"]
+    after = checkpoint.load(tmp_path / "stage1" / "last.pt")["model"]  # the end of stage 1
+    assert int(after["mvnet.stage"]) == 1
+    for key, value in init.items():
+        if key.startswith(("mvnet.local.", "mvnet.nonlocal_mp.", "mvnet.selectors.", "mvnet.head.", "selector.")):
+            assert torch.equal(after[key], value), key
+    for key in ("mvnet.single_view_head.weight", "mvnet.backbone.body.0.weight"):
+        assert not torch.equal(after[key], init[key]), key

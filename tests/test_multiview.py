@@ -12,6 +12,12 @@ def _images(b, m, size=32, seed=0, requires_grad=False):
     return torch.rand(b, m, 3, size, size, generator=g).requires_grad_(requires_grad)
 
 
+def _views(b, m, seed=0):
+    """Random views ``(azim, elev, dist)`` ``[b, m]`` (the networks that read views need them)."""
+    g = torch.Generator().manual_seed(seed + 100)
+    return torch.rand(b, m, generator=g) * 360, torch.rand(b, m, generator=g) * 180 - 90, torch.full((b, m), 2.2)
+
+
 def _net(pool="max", cls=MVCNN, **kw):
     torch.manual_seed(0)
     return cls(small_cnn(num_classes=K, width=W), K, pool=pool, **kw)
@@ -52,11 +58,11 @@ def test_non_contiguous_input_and_non_square_images():
 @pytest.mark.parametrize("name", sorted(MULTIVIEW))
 def test_view_permutation_invariance(name):
     net = build_multiview(name, small_cnn(num_classes=K, width=W), K).eval()
-    x = _images(2, 6)
+    x, views = _images(2, 6), _views(2, 6)
     perm = torch.tensor([3, 0, 5, 1, 4, 2])
     with torch.no_grad():
-        l1, f1 = net(x)
-        l2, f2 = net(x[:, perm])
+        l1, f1 = net(x, views)
+        l2, f2 = net(x[:, perm], tuple(v[:, perm] for v in views))
     torch.testing.assert_close(l1, l2, atol=1e-5, rtol=0)
     torch.testing.assert_close(f1, f2, atol=1e-5, rtol=0)
 
@@ -64,10 +70,10 @@ def test_view_permutation_invariance(name):
 @pytest.mark.parametrize("name", sorted(MULTIVIEW))
 def test_batch_equals_single_shape_calls(name):
     net = build_multiview(name, "small_cnn", K).eval()
-    x = _images(3, 4, seed=1)
+    x, views = _images(3, 4, seed=1), _views(3, 4)
     with torch.no_grad():
-        logits, feats = net(x)
-        singles = [net(x[i:i + 1]) for i in range(3)]
+        logits, feats = net(x, views)
+        singles = [net(x[i:i + 1], tuple(v[i:i + 1] for v in views)) for i in range(3)]
     torch.testing.assert_close(logits, torch.cat([s[0] for s in singles]), atol=1e-5, rtol=0)
     torch.testing.assert_close(feats, torch.cat([s[1] for s in singles]), atol=1e-5, rtol=0)
 
@@ -76,11 +82,12 @@ def test_batch_equals_single_shape_calls(name):
 def test_gradients_reach_backbone_and_input_images(name):
     net = build_multiview(name, small_cnn(num_classes=K, width=W), K, dropout=0.2).train()
     x = _images(2, 3, requires_grad=True)
-    logits, _ = net(x)
-    logits.square().sum().backward()
+    logits, _ = net(x, _views(2, 3))
+    net.training_loss(logits, torch.tensor([0, 1]), lambda z, y: z.square().sum()).backward()
     assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
     for pname, p in net.named_parameters():
-        if pname.startswith("backbone.fc."):  # the backbone's own classifier is unused by design
+        # the backbone's own classifier is unused by design; ViewGCN's single-view head is stage 1's
+        if pname.startswith(("backbone.fc.", "single_view_head.")):
             assert p.grad is None
             continue
         assert p.grad is not None and torch.isfinite(p.grad).all(), pname
@@ -132,8 +139,8 @@ def test_dropout_only_in_train_mode():
 
 
 def test_unknown_names_and_bad_input_raise_clear_errors():
-    with pytest.raises(ValueError, match=r"unknown multi-view network 'viewgcn'.*late_fusion, mvcnn"):
-        build_multiview("viewgcn", "small_cnn", K)
+    with pytest.raises(ValueError, match=r"unknown multi-view network 'rotationnet'.*late_fusion, mvcnn"):
+        build_multiview("rotationnet", "small_cnn", K)
     with pytest.raises(ValueError, match=r"unknown backbone 'resnet7'.*allowed"):
         build_multiview("mvcnn", "resnet7", K)
     with pytest.raises(ValueError, match=r"view pooling 'sum'.*max, mean"):

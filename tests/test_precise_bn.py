@@ -11,12 +11,19 @@ from mvtn_exp.engine.precise_bn import recalibrate, restore, running_statistics
 from test_train_e2e import tiny
 
 
+class _ToyC(nn.Sequential):
+    """A multi-view network takes the views beside the images (and may ignore them)."""
+
+    def forward(self, images, views=None):
+        return super().forward(images)
+
+
 class _Toy(nn.Module):
     """select / render pass the batch's images through; mvnet: a 1x1 conv and a BatchNorm."""
 
     def __init__(self):
         super().__init__()
-        self.mvnet = nn.Sequential(nn.Conv2d(3, 4, 1), nn.BatchNorm2d(4), nn.Dropout())
+        self.mvnet = _ToyC(nn.Conv2d(3, 4, 1), nn.BatchNorm2d(4), nn.Dropout())
         self.selector = nn.BatchNorm1d(2)
 
     def select(self, batch):

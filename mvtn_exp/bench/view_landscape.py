@@ -79,7 +79,7 @@ def landscape(run_dir, thetas=(0, 20, 40, 60), shapes: int = 96, pairs: int = 6,
         azim = torch.tensor(a, dtype=torch.float32)[:, None].requires_grad_(True)
         elev = torch.tensor(e, dtype=torch.float32)[:, None].requires_grad_(True)
         dist = torch.full_like(azim, cfg.selector.distance)
-        logits, _ = model.mvnet(model.render(batch, azim, elev, dist))
+        logits, _ = model.mvnet(model.render(batch, azim, elev, dist), (azim, elev, dist))
         loss = per_shape(logits, labels)
         loss.sum().backward()
         auto = camera_move(a, e, azim.grad[:, 0].double().numpy(), elev.grad[:, 0].double().numpy())

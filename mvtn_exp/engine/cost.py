@@ -52,7 +52,7 @@ def flops_per_shape(model, batch: dict) -> dict[str, float]:
                 views = model.select(batch)
             images = model.render(batch, *views)
             with FlopCounterMode(display=False) as c_count:
-                model.mvnet(images)
+                model.mvnet(images, views)
     finally:
         model.train(was)
     return {"flops_selector_per_shape": g_count.get_total_flops() / B,

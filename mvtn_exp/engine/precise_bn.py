@@ -53,7 +53,8 @@ def recalibrate(model, batches: Iterable[dict], n: int) -> int:
             for batch in batches:
                 if used >= n:
                     break
-                model.mvnet(model.render(batch, *model.select(batch)))
+                views = model.select(batch)
+                model.mvnet(model.render(batch, *views), views)
                 used += 1
     finally:
         for m, momentum in zip(bns, momenta):

@@ -99,11 +99,28 @@ def train_loader(cfg: TrainConfig, dataset, epoch: int) -> DataLoader:
                       num_workers=cfg.dataset.num_workers, drop_last=drop_last)
 
 
+def stage_span(cfg: TrainConfig, epoch: int) -> tuple[int, int]:
+    """``(first epoch, epochs)`` of the training stage holding ``epoch`` (0-based): the whole run,
+    or with ``mvnet.stages=[S1, S2]`` (ViewGCN) the single-view stage or the whole-network stage."""
+    stages = cfg.mvnet.stages
+    if stages is None:
+        return 0, cfg.epochs
+    return (0, stages[0]) if epoch < stages[0] else (stages[0], cfg.epochs - stages[0])
+
+
+def single_view_stage(cfg: TrainConfig, epoch: int) -> bool:
+    """Whether ``epoch`` (0-based) is ViewGCN's stage 1 (views classified one at a time, G frozen)."""
+    return cfg.mvnet.stages is not None and epoch < cfg.mvnet.stages[0]
+
+
 def lr_factor(cfg: TrainConfig, epoch: int) -> float:
-    """Multiplier of the base learning rates during ``epoch`` (0-based)."""
+    """Multiplier of the base learning rates during ``epoch`` (0-based); the schedule runs over the
+    epoch's training stage (``stage_span``: the whole run unless ``mvnet.stages`` is set)."""
+    first, length = stage_span(cfg, epoch)
+    e = epoch - first
     if cfg.optim.schedule == "cosine":
-        return 0.5 * (1.0 + math.cos(math.pi * epoch / cfg.epochs))
-    return cfg.optim.step_gamma ** (epoch // cfg.optim.step_size)
+        return 0.5 * (1.0 + math.cos(math.pi * e / length))
+    return cfg.optim.step_gamma ** (e // cfg.optim.step_size)
 
 
 def group_factor(cfg: TrainConfig, name: str, epoch: int) -> float:
@@ -252,7 +269,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     groups = model.parameter_groups()
     all_params = groups["mvnet"] + groups["selector"]
     acc = _Epoch()
-    warm = bool(groups["selector"]) and epoch < cfg.optim.selector_warmup_epochs  # G frozen, C alone
+    # G frozen, C alone: G's warm-up, and ViewGCN's single-view stage (on G's initial views)
+    warm = bool(groups["selector"]) and (epoch < cfg.optim.selector_warmup_epochs or single_view_stage(cfg, epoch))
     # G's learning rate is 0 (optim.selector_epochs reached, or lr_selector=0): C trains on G's
     # views, and neither G's gradient nor the smoothed probes are computed (G's weights are the same)
     frozen = bool(groups["selector"]) and not warm and selector_lr(opt) == 0.0
@@ -284,8 +302,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
             if S > 1:
                 images = split_images(images, S)  # [B * H, M, 3, h, w]
         with timer.stage("backbone"):
-            logits, _ = model.mvnet(images)
-            loss = loss_fn(logits, labels)
+            logits, _ = model.mvnet(images, views if S == 1 else split_views(views, S))
+            loss = model.mvnet.training_loss(logits, labels, loss_fn)
         if not bool(torch.isfinite(loss.detach())):
             raise TrainingDiverged(f"epoch {epoch + 1}, step {step + 1}: non-finite loss {float(loss.detach())} "
                                    f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
@@ -432,6 +450,12 @@ def train(cfg, run_dir, build_model=None) -> dict:
         with cost.peak_memory(device) as train_memory:
             for epoch in range(start, cfg.epochs):
                 t0 = time.perf_counter()
+                if cfg.mvnet.stages is not None:  # ViewGCN: single views first, then the whole network
+                    model.mvnet.stage.fill_(1 if single_view_stage(cfg, epoch) else 2)
+                    if epoch == cfg.mvnet.stages[0]:
+                        best_acc, best_epoch = -1.0, -1
+                        say(run_dir, f"epoch {epoch + 1}: ViewGCN stage 2 (the whole network); model selection "
+                                     "counts from here")
                 lrs = {f"lr_{g['name']}": g["lr"] for g in opt.param_groups}
                 tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch), opt, cfg, epoch, loss_fn,
                                            timer, logger, step)

@@ -85,7 +85,8 @@ def model_render_loss(model, batch: dict, labels: Tensor, per_shape_loss: Callab
         views = (azim, elev, dist) if hypotheses == 1 else join_views((azim, elev, dist), hypotheses)
         with eval_mode(model):
             images = model.render(batch, *views)
-            logits, _ = model.mvnet(images if hypotheses == 1 else split_images(images, hypotheses))
+            logits, _ = (model.mvnet(images, views) if hypotheses == 1
+                         else model.mvnet(split_images(images, hypotheses), (azim, elev, dist)))
         return per_shape_loss(logits, labels)
     return render_loss
 

@@ -34,7 +34,14 @@ class MVCNN(nn.Module):
         dropout: dropout probability on the pooled descriptor before the head.
 
     Pooling is symmetric in the views, so the output is invariant to their order.
+
+    ``forward(images, views=None)``: every multi-view network takes the views ``(azim, elev, dist)``
+    ``[B, M]`` the images were rendered from; those with ``needs_views`` (ViewGCN) use them, the
+    others ignore them. ``training_loss`` is the loss the trainer minimises (a network with
+    auxiliary outputs adds their losses).
     """
+
+    needs_views = False
 
     def __init__(self, backbone: Union[nn.Module, str], num_classes: int,
                  weights: Optional[PathLike] = None, pool: str = "max", dropout: float = 0.0) -> None:
@@ -67,13 +74,18 @@ class MVCNN(nn.Module):
         """``[B, M, D] -> [B, D]`` view pooling (max or mean over M)."""
         return feats.amax(dim=1) if self.pool == "max" else feats.mean(dim=1)
 
-    def forward(self, images: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(self, images: Tensor, views=None) -> tuple[Tensor, Tensor]:
         """``[B, M, 3, H, W] -> (logits [B, num_classes], features [B, feature_dim])``.
 
         ``features`` is the pooled shape descriptor before dropout and the head (for retrieval).
+        ``views`` is not used (see the class docstring).
         """
         features = self.aggregate(self.view_features(images))
         return self.head(self.dropout(features)), features
+
+    def training_loss(self, logits: Tensor, labels: Tensor, loss_fn) -> Tensor:
+        """The training objective of the last forward: ``loss_fn(logits [B, K], labels [B])``."""
+        return loss_fn(logits, labels)
 
 
 class LateFusion(MVCNN):
@@ -91,7 +103,7 @@ class LateFusion(MVCNN):
             raise ValueError(f"LateFusion averages views; pool must be 'mean', got {pool!r}")
         super().__init__(backbone, num_classes, weights=weights, pool="mean", dropout=dropout)
 
-    def forward(self, images: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(self, images: Tensor, views=None) -> tuple[Tensor, Tensor]:
         """``[B, M, 3, H, W] -> (logits [B, num_classes], features [B, feature_dim])``."""
         feats = self.view_features(images)                          # [B, M, D]
         logits = self.head(self.dropout(feats)).mean(dim=1)         # [B, M, K] -> [B, K]
@@ -104,15 +116,21 @@ def _view_transformer(*args, **kw) -> MVCNN:
     return ViewTransformer(*args, **kw)
 
 
+def _viewgcn(*args, **kw) -> MVCNN:
+    from .viewgcn import ViewGCN  # it subclasses MVCNN
+
+    return ViewGCN(*args, **kw)
+
+
 MULTIVIEW: dict[str, Callable[..., MVCNN]] = {"mvcnn": MVCNN, "late_fusion": LateFusion,
-                                              "view_transformer": _view_transformer}
+                                              "view_transformer": _view_transformer, "viewgcn": _viewgcn}
 
 
 def build_multiview(name: str, backbone: Union[nn.Module, str], num_classes: int, **kw) -> MVCNN:
     """Build a registered multi-view network: ``[B, M, 3, H, W] -> (logits [B, K], features [B, D])``.
 
     ``kw`` goes to the constructor (``weights``, ``pool``, ``dropout``; ``view_transformer`` also
-    takes ``blocks``, ``heads``, ``width``, ``mlp_ratio``).
+    takes ``blocks``, ``heads``, ``width``, ``mlp_ratio``; ``viewgcn`` takes ``k``).
     """
     if name not in MULTIVIEW:
         raise ValueError(f"unknown multi-view network {name!r}; allowed: {', '.join(sorted(MULTIVIEW))}")

@@ -86,7 +86,7 @@ def optimize_views(model, batch: dict, views: Views, selector: OptimizedSelector
             for _ in range(selector.steps):
                 azim, elev = azim.requires_grad_(True), elev.requires_grad_(True)
                 out = model.render_output(batch, azim, elev, dist)
-                logits, _ = model.mvnet(out.images)
+                logits, _ = model.mvnet(out.images, (azim, elev, dist))
                 B = len(labels)
                 coverage = out.alpha.reshape(B, -1).mean(1)
                 value = objective_value(selector.objective, logits, labels, coverage).sum()
