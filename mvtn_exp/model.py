@@ -7,6 +7,7 @@ import torch
 from torch import nn
 
 from .data.shapes import PointClouds
+from .models.precision import autocast
 from .models.multiview import build_multiview
 from .render.renderer import MultiViewRenderer
 from .schema import SHAPES, TrainConfig
@@ -34,6 +35,7 @@ class MVTN(nn.Module):
             raise ValueError(f"shape={shape!r}: expected one of {list(SHAPES)}")
         self.selector, self.renderer, self.mvnet, self.shape = selector, renderer, mvnet, shape
         self.selector_frozen = False  # view transfer: G's weights and statistics fixed (engine/view_transfer.py)
+        self.precision = "fp32"  # C's autocast (engine/precision.py); G and R always run in float32
 
     def train(self, mode: bool = True) -> "MVTN":
         super().train(mode)
@@ -44,9 +46,16 @@ class MVTN(nn.Module):
     def forward(self, batch: dict) -> dict:
         views = self.select(batch)
         images = self.render(batch, *views)
-        logits, features = self.mvnet(images, views)
+        logits, features = self.classify(images, views)
         return {"logits": logits, "features": features, "azim": views[0], "elev": views[1], "dist": views[2],
                 "images": images}
+
+    def classify(self, images, views):
+        """C: ``images [B, M, 3, H, W]`` rendered from ``views`` -> ``(logits [B, K], features [B, D])``,
+        under ``precision``'s autocast, returned as float32."""
+        with autocast(self.precision, self.device):
+            logits, features = self.mvnet(images, views)
+        return logits.float(), features.float()
 
     @property
     def device(self):
@@ -127,5 +136,7 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
         selector = build_selector_from(cfg)
     polarity = ViewPolarity(cfg.views) if cfg.optim.flip_explore > 0 else None
     race = HypothesisRace(cfg.selector.hypotheses) if cfg.selector.hypotheses > 1 else None
-    return MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,
-                selector_points=cfg.selector.num_points, polarity=polarity, hypotheses=race)
+    model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,
+                 selector_points=cfg.selector.num_points, polarity=polarity, hypotheses=race)
+    model.precision = cfg.precision
+    return model

@@ -363,7 +363,9 @@ class OptimConfig:
     ``selectors/hypotheses.py``). ``hypothesis_mode``: while they race, C classifies each
     hypothesis's M views as a shape of its own (``separate``) or all H x M views of a shape pooled
     as one shape, like a run at H x M views, each hypothesis then scored by C alone on its own M
-    views in eval mode (``pooled``)."""
+    views in eval mode (``pooled``). ``ema_decay``: keep an exponential moving average of G's and
+    C's weights with this decay (e.g. 0.999; null: none), evaluated on validation beside the raw
+    weights every epoch; the better of the two is kept as best.pt (``engine/ema.py``)."""
 
     name: str = "adamw"
     lr: float = 1e-3
@@ -390,6 +392,7 @@ class OptimConfig:
     hypothesis_mode: str = "separate"
     bn_recalibrate: int = 0
     bn_recalibrate_scope: str = "eval"
+    ema_decay: Optional[float] = None
 
     def validate(self) -> "OptimConfig":
         one_of("optim", self.name, OPTIMIZERS)
@@ -398,6 +401,8 @@ class OptimConfig:
         at_least("optim.lr_selector", self.lr_selector, 0.0)
         at_least("optim.weight_decay", self.weight_decay, 0.0)
         at_least("optim.clip_selector", self.clip_selector, 0.0, strict=True)
+        if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
+            raise ValueError(f"optim.ema_decay={self.ema_decay}: expected a number in (0, 1), e.g. 0.999, or null")
         at_least("optim.step_size", self.step_size, 1)
         at_least("optim.selector_warmup_epochs", self.selector_warmup_epochs, 0)
         one_of("optim.warmup_views", self.warmup_views, WARMUP_VIEWS)
@@ -469,12 +474,27 @@ class PathsConfig:
     cache_dir: str = "${paths.output_dir}/cache"
 
 
+PRECISIONS = ("fp32", "bf16", "fp16")
+
+
+def check_precision(precision: str, device: str) -> None:
+    """One-line errors naming the keys, for a precision the device cannot run (``models/precision.py``)."""
+    one_of("precision", precision, PRECISIONS)
+    if precision == "fp16" and not str(device).startswith("cuda"):
+        raise ValueError(f"precision=fp16 with device={device}: float16 autocast needs CUDA; on CPU use "
+                         "precision=bf16 or fp32")
+
+
 @dataclass
 class TrainConfig:
     """``mvtn-train``. Top-level keys everyone reaches for; the rest in the groups.
 
     ``views``: M; ``image_size``: rendered H = W (sets ``renderer.image_size``); ``seed``: the
-    training seed (init, order, augmentation); ``ckpt_path``: resume from this checkpoint.
+    training seed (init, order, augmentation); ``ckpt_path``: resume from this checkpoint;
+    ``threads``: torch's CPU threads for this process (null: torch's default, or under the joblib
+    launcher the cores divided by the jobs that run at once); ``precision``: fp32, or autocast of
+    the multi-view network C in bf16 or fp16 (CUDA only; G and the renderer stay float32:
+    ``models/precision.py``).
     """
 
     views: int = 4
@@ -484,6 +504,8 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     ckpt_path: Optional[str] = None
+    threads: Optional[int] = None
+    precision: str = "fp32"
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # renderer.image_size follows the top-level image_size (an interpolation, resolved at compose time);
     # training defaults to soft smooth rendering (conf/renderer/soft.yaml: camera gradients for G)
@@ -522,6 +544,9 @@ class TrainConfig:
         if self.selector.hypotheses > 1 and self.optim.flip_explore > 0:
             raise ValueError("selector.hypotheses with optim.flip_explore: choose one way to explore")
         check_device("device", self.device)
+        if self.threads is not None:
+            at_least("threads", self.threads, 1)
+        check_precision(self.precision, self.device)
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
                      self.optim, self.augment, self.logger):
             part.validate()

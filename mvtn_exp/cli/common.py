@@ -231,6 +231,16 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
         return
     from hydra import compose, initialize_config_module
 
+    hydra_groups = [a for a in argv if a.lstrip("+~").startswith("hydra/")]
+    if hydra_groups:  # hydra/launcher=..., hydra/sweeper=...: an option that is not installed
+        try:
+            with initialize_config_module(version_base="1.3", config_module=config_module):
+                compose(config_name, overrides=hydra_groups, return_hydra_config=True)
+        except Exception as exc:
+            _, msg = describe(exc, schema)
+            print(f"{prog}: config error in {' '.join(hydra_groups)}: {msg} (launchers are Hydra plugins; mvtn-exp "
+                  "installs hydra-joblib-launcher and hydra-submitit-launcher)", file=sys.stderr)
+            sys.exit(2)
     overrides = [a for a in argv if a not in MULTIRUN_FLAGS and not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
     conf_dir = config_module.replace(".", "/")
     for o in overrides:

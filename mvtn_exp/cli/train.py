@@ -58,6 +58,36 @@ def resume_config(cfg, overrides: list[str]) -> TrainConfig:
     return as_config(OmegaConf.to_container(saved, resolve=True))
 
 
+def usable_cores() -> int:
+    """CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def launcher_threads(launcher, cores: int) -> int | None:
+    """Torch threads for one job of a sweep whose jobs share this machine's cores: under the joblib
+    launcher the cores divided by the jobs that run at once (``n_jobs``; -1 = one per core, -2 =
+    all cores but one); under submitit_local, which starts every job at once, its ``cpus_per_task``
+    or 1. None otherwise (one job alone, or a cluster job on the cores it was given)."""
+    target = str(OmegaConf.select(launcher, "_target_", default="") or "")
+    if target.endswith("JoblibLauncher"):
+        n = int(OmegaConf.select(launcher, "n_jobs", default=-1))
+        at_once = cores + 1 + n if n < 0 else n
+        return max(1, cores // max(1, at_once))
+    if target.endswith("submitit_launcher.LocalLauncher"):
+        return int(OmegaConf.select(launcher, "cpus_per_task", default=None) or 1)
+    return None
+
+
+def requeued_checkpoint(run_dir: Path) -> Path | None:
+    """A cluster job started again in its own run dir (submitit requeues a preempted or timed-out
+    job with the same command): its ``last.pt``, to go on from; None for a first start or a run
+    that finished."""
+    last = run_dir / "last.pt"
+    if os.environ.get("SUBMITIT_EXECUTOR") and last.is_file() and not (run_dir / "metrics.json").is_file():
+        return last
+    return None
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def _app(cfg) -> None:
     hc = HydraConfig.get()
@@ -65,12 +95,19 @@ def _app(cfg) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _raise_interrupted)
     try:
+        requeued = None if cfg.ckpt_path else requeued_checkpoint(run_dir)
+        if requeued is not None:
+            cfg.ckpt_path = str(requeued)
+            with open(run_dir / "train.log", "a") as f:
+                f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] requeued: going on from {requeued}\n")
         if cfg.ckpt_path:
             tcfg = resume_config(cfg, list(hc.overrides.task))
             if (run_dir / "metrics.json").is_file():  # a finished run goes on: keep its results
                 (run_dir / "metrics.json").rename(run_dir / f"metrics-before-resume-{time.strftime('%Y%m%d-%H%M%S')}.json")
         else:
             tcfg = OmegaConf.to_object(cfg)
+        if tcfg.threads is None:  # parallel local sweep: split the cores between the jobs
+            tcfg.threads = launcher_threads(hc.launcher, usable_cores())
         train(tcfg, run_dir)
     except Interrupted as exc:
         last = run_dir / "last.pt"
@@ -91,7 +128,8 @@ def _app(cfg) -> None:
         if hc.mode == RunMode.MULTIRUN:  # recorded for the sweep summary: go on with the next job
             return
         sys.exit(EXIT_CODES.get(type(exc), 1 if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError) else 2))
-    print(run_dir / "metrics.json")
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(run_dir / "metrics.json")
 
 
 def resume_in_place(argv: list[str]) -> list[str]:
@@ -110,10 +148,68 @@ def resume_in_place(argv: list[str]) -> list[str]:
             f"hydra.output_subdir=.hydra/resumed-{time.strftime('%Y%m%d-%H%M%S')}"]
 
 
+def summary(argv: list[str]) -> int:
+    """``mvtn-train --summary DIR``: (re)write a sweep folder's summary, e.g. after jobs ran on a
+    cluster and the submitting process was gone when they finished. Exit 0, 1 when a job failed or
+    did not finish, 2 for a folder that is not a sweep."""
+    from ..engine.sweep import collect, failed_jobs, write_summary
+
+    if len(argv) != 1:
+        print("mvtn-train: error: --summary takes one sweep folder: mvtn-train --summary DIR", file=sys.stderr)
+        return 2
+    sweep = Path(argv[0])
+    if not sweep.is_dir():
+        print(f"mvtn-train: error: --summary {sweep}: no such folder", file=sys.stderr)
+        return 2
+    rows = collect(sweep)
+    if not rows:
+        print(f"mvtn-train: error: --summary {sweep}: no sweep jobs in it (folders with a .hydra record)", file=sys.stderr)
+        return 2
+    _, md = write_summary(sweep)
+    print(md.read_text())
+    print(md)
+    failed = failed_jobs(sweep, rows)
+    if failed:
+        print(f"mvtn-train: {len(failed)} of {len(rows)} sweep jobs did not finish: " + "; ".join(failed), file=sys.stderr)
+        return 1
+    return 0
+
+
+def shared_run_dir(argv: list[str]) -> list[str]:
+    """Under torchrun (``WORLD_SIZE`` > 1): join the process group and give every rank rank 0's run
+    dir (``hydra.run.dir``); the other ranks write no Hydra record and log to the console only
+    (``engine/distributed.py``: rank 0 alone writes the run). A sweep (``-m``) is refused."""
+    from ..engine import distributed
+
+    world = distributed.from_env()
+    if not world.enabled:
+        return argv
+    if any(a in ("-m", "--multirun") for a in argv):
+        print("mvtn-train: error: torchrun runs one training job on several processes; sweep with a launcher "
+              "(hydra/launcher=...) instead of -m", file=sys.stderr)
+        sys.exit(2)
+    import torch
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
+    given = next((a.split("=", 1)[1] for a in argv if a.startswith("hydra.run.dir=")), None)
+    if given is None:
+        out = next((a.split("=", 1)[1] for a in argv if a.startswith("paths.output_dir=")), "outputs")
+        given = distributed.broadcast(f"{out}/train/runs/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}", world)
+        argv = [*argv, f"hydra.run.dir={given}"]
+    if not world.main:
+        argv = [*argv, "hydra.output_subdir=null", "hydra/job_logging=stdout"]
+    return argv
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["--summary"]:
+        sys.exit(summary(sys.argv[2:]))
     check_overrides("mvtn-train", "train", TrainConfig, sys.argv[1:], validate=TrainConfig.validate)
     sys.argv[1:] = resume_in_place(sys.argv[1:])
     check_writable("mvtn-train", sys.argv[1:])
+    sys.argv[1:] = shared_run_dir(sys.argv[1:])
     _app()
 
 

@@ -8,9 +8,9 @@ per shape (seeded by the file name), so evaluation is deterministic. A shape tha
 path and skipped (counted; listed in the cache's ``skipped`` record), or raises with ``strict``.
 
 Cache: ``<cache_dir>/<dataset>_<split>_<key>.npz`` (packed arrays, ``packed.py``), ``key`` hashing
-every setting and the preprocessing version. One process at a time builds a given cache (two runs
-started together on a cold cache would race on its ``.parts`` folder): prepare it first with
-``mvtn-prepare`` before launching parallel jobs. Shapes are first written one by one into a
+every setting and the preprocessing version. One process at a time builds a given cache: runs that
+start together on a cold cache (a parallel sweep, DDP ranks) wait on ``<cache>.lock`` while the
+first builds it, then load it (``packed.cache_lock``). Shapes are first written one by one into a
 ``.parts`` folder beside it, so an interrupted run resumes without redoing finished shapes; the
 packed file is written atomically at the end and the parts removed.
 
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from .mesh_io import DatasetNotFound, ShapeFileError, check_mesh, normalize_unit_sphere, read_off, zup_to_yup
-from .packed import PACKED_ARRAYS, PackedShapes, load_npz, pack, sample_surface, save_npz_atomic, triangle_areas, validate
+from .packed import PACKED_ARRAYS, PackedShapes, cache_lock, load_npz, pack, sample_surface, save_npz_atomic, triangle_areas, validate
 
 log = logging.getLogger(__name__)
 
@@ -104,15 +104,28 @@ def prepare_split(files: list[tuple[Path, int]], cache_path: Path, settings: dic
     ``preprocess_fn(path, label, num_points, max_vertices, seed) -> {verts, faces, points, label, name}``
     (raising ShapeFileError for an unusable file) lets other readers reuse this caching; default: this
     module's ``preprocess``, looked up at call time."""
-    from tqdm.auto import tqdm
-
     if preprocess_fn is None:
         preprocess_fn = preprocess
 
-    cached = load_npz(cache_path, settings, (*PACKED_ARRAYS, "skipped"),
-                      lambda a: validate(a, None, settings["num_points"], num_classes))
-    if cached is not None:
-        return cached
+    def cached():
+        return load_npz(cache_path, settings, (*PACKED_ARRAYS, "skipped"),
+                        lambda a: validate(a, None, settings["num_points"], num_classes))
+
+    arrays = cached()
+    if arrays is not None:
+        return arrays
+    with cache_lock(cache_path):  # one process builds, others wait for it (packed.cache_lock)
+        arrays = cached()
+        if arrays is None:
+            arrays = _build_split(files, cache_path, settings, num_classes, strict, progress, preprocess_fn)
+    return arrays
+
+
+def _build_split(files, cache_path: Path, settings: dict, num_classes: int, strict: bool, progress: bool,
+                 preprocess_fn) -> dict[str, np.ndarray]:
+    """``prepare_split``'s work, under its lock: per-shape parts (resumable), then the packed file."""
+    from tqdm.auto import tqdm
+
     parts = cache_path.with_suffix(".parts")
     parts.mkdir(parents=True, exist_ok=True)
     (parts / "settings.json").write_text(json.dumps(settings, sort_keys=True))

@@ -8,6 +8,7 @@ settings (or by another version) is never misread, it is rebuilt.
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 import os
 import tempfile
 import warnings
@@ -142,11 +143,40 @@ class PackedShapes(Dataset):
 
 
 
+@contextmanager
+def cache_lock(path: Path):
+    """Hold an exclusive lock on ``<path>.lock`` while the cache at ``path`` is looked up and built:
+    processes that start together on a cold cache (a parallel sweep, several ranks) build it once;
+    the others wait, then load it. POSIX ``flock`` (released by the OS if the holder dies); where
+    it is missing (Windows) there is no lock and the atomic writes alone keep the cache whole."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    lock = path.with_name(path.name + ".lock")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+            # the cache is written: drop the lock file (a process still waiting on it finds the
+            # cache when it gets the lock; one arriving later finds the cache before locking)
+            lock.unlink(missing_ok=True)
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 def cached_arrays(path: Path, settings: dict, keys, check, build) -> dict[str, np.ndarray]:
-    """The arrays cached at ``path`` (see ``load_npz``), or ``build()``'s, checked and then cached atomically."""
+    """The arrays cached at ``path`` (see ``load_npz``), or ``build()``'s, checked and then cached
+    atomically; built by one process at a time (``cache_lock``)."""
     arrays = load_npz(path, settings, keys, check)
-    if arrays is None:
-        arrays = build()
-        check(arrays)
-        save_npz_atomic(path, arrays, settings)
+    if arrays is not None:
+        return arrays
+    with cache_lock(path):
+        arrays = load_npz(path, settings, keys, check)  # another process may have built it meanwhile
+        if arrays is None:
+            arrays = build()
+            check(arrays)
+            save_npz_atomic(path, arrays, settings)
     return arrays

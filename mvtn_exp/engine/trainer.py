@@ -13,7 +13,7 @@ import logging
 import math
 import shutil
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 from ..data.collate import collate_shapes
 from ..data.datasets import build_dataset
 from ..model import MVTN, build_mvtn
+from ..models.precision import grad_scaler
 from ..render import layouts
 from ..schema import TrainConfig
 from ..selectors.fixed import random_directions
@@ -33,7 +34,8 @@ from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from ..viz.views import detail_angles_png
-from . import checkpoint, cost, precise_bn, seeding, view_gradient
+from . import checkpoint, cost, distributed, precise_bn, seeding, view_gradient
+from .ema import ModelEMA
 from .view_stats import view_stats
 from .provenance import provenance
 from .run_logger import RunLogger
@@ -90,13 +92,44 @@ def eval_loader(cfg: TrainConfig, dataset) -> DataLoader:
                       num_workers=cfg.dataset.num_workers)
 
 
-def train_loader(cfg: TrainConfig, dataset, epoch: int) -> DataLoader:
+def train_loader(cfg: TrainConfig, dataset, epoch: int, world: distributed.World = distributed.World()) -> DataLoader:
     """The shuffled train loader of ``epoch``: its order depends only on (seed, epoch), so resume is exact.
-    The last incomplete batch is dropped when it would hold a single shape (BatchNorm needs >= 2)."""
+    The last incomplete batch is dropped when it would hold a single shape (BatchNorm needs >= 2).
+    With several processes (``world``) each takes its share of every global batch of ``batch_size``
+    (``distributed.shard``), and a last batch that cannot give each at least 2 shapes is dropped."""
     g = torch.Generator().manual_seed(cfg.seed * 100003 + epoch)
+    if world.enabled:
+        order = torch.randperm(len(dataset), generator=g).tolist()  # what the one-process loader draws
+        batches = [order[i:i + cfg.batch_size] for i in range(0, len(order), cfg.batch_size)]
+        batches = [distributed.shard(b, world) for b in batches if len(b) >= 2 * world.size]
+        return DataLoader(dataset, batch_sampler=batches, collate_fn=collate_shapes,
+                          num_workers=cfg.dataset.num_workers)
     drop_last = len(dataset) % cfg.batch_size == 1
     return DataLoader(dataset, batch_size=cfg.batch_size, shuffle=True, generator=g, collate_fn=collate_shapes,
                       num_workers=cfg.dataset.num_workers, drop_last=drop_last)
+
+
+def evaluate_split(model, dataset, cfg: TrainConfig, num_classes: int, desc: str,
+                   world: distributed.World = distributed.World()) -> dict:
+    """``classification.evaluate`` on ``dataset``; with several processes each classifies its own
+    contiguous share (every shape once) and the results are gathered: the same dict, over the whole
+    split, in the dataset's order, on every rank."""
+    if not world.enabled:
+        return classification.evaluate(model, eval_loader(cfg, dataset), num_classes, desc=desc,
+                                       progress=cfg.logger.progress)
+    from torch.utils.data import Subset
+
+    mine = Subset(dataset, distributed.shard(list(range(len(dataset))), world))
+    res = classification.evaluate(model, eval_loader(cfg, mine), num_classes, desc=desc,
+                                  progress=cfg.logger.progress and world.main)
+    parts = distributed.gather({k: res[k] for k in ("confusion", "loss", "n", "azim", "elev", "dist", "labels", "pred")},
+                               world)
+    conf = sum(torch.tensor(p["confusion"]) for p in parts)
+    out = classification.summarize(conf)
+    out.update(loss=sum(p["loss"] * p["n"] for p in parts) / max(out["n"], 1), confusion=conf.tolist(),
+               **{k: torch.cat([p[k] for p in parts]) for k in ("azim", "elev", "dist", "labels", "pred")},
+               images=res["images"] if world.main else None)
+    return out
 
 
 def stage_span(cfg: TrainConfig, epoch: int) -> tuple[int, int]:
@@ -243,7 +276,10 @@ def augment(batch: dict, cfg: TrainConfig) -> dict:
 
 
 def say(run_dir: Path, line: str) -> None:
-    """Print ``line`` and append it, time-stamped, to ``<run_dir>/train.log`` (the run's record)."""
+    """Print ``line`` and append it, time-stamped, to ``<run_dir>/train.log`` (the run's record);
+    with several processes only rank 0 does (``distributed``)."""
+    if not distributed.from_env().main:
+        return
     print(line, flush=True)
     with open(Path(run_dir) / "train.log", "a") as f:
         f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] {line}\n")
@@ -263,8 +299,10 @@ class _Epoch:
 
 
 def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss_fn, timer: StepTimer,
-                    logger: RunLogger, step: int) -> tuple[dict, int]:
-    """One pass over ``loader``; returns (epoch sums, global step after it)."""
+                    logger: RunLogger, step: int, scaler=None, ema=None,
+                    world: distributed.World = distributed.World()) -> tuple[dict, int]:
+    """One pass over ``loader``; returns (epoch sums, global step after it). ``scaler``: fp16's
+    loss scaler (``models/precision.py``); ``ema``: a ``ModelEMA`` updated after every step."""
     model.train()
     groups = model.parameter_groups()
     all_params = groups["mvnet"] + groups["selector"]
@@ -302,7 +340,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
             if S > 1:
                 images = split_images(images, S)  # [B * H, M, 3, h, w]
         with timer.stage("backbone"):
-            logits, _ = model.mvnet(images, views if S == 1 else split_views(views, S))
+            logits, _ = model.classify(images, views if S == 1 else split_views(views, S))
             loss = model.mvnet.training_loss(logits, labels, loss_fn)
         if not bool(torch.isfinite(loss.detach())):
             raise TrainingDiverged(f"epoch {epoch + 1}, step {step + 1}: non-finite loss {float(loss.detach())} "
@@ -323,12 +361,21 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
                 objective = loss + view_gradient.surrogate(views, *(join_views(g, S) if S > 1 else g))
         with timer.stage("optimizer"):
             opt.zero_grad(set_to_none=True)
-        timer.backward(objective, views, images)
+        scaling = scaler is not None and scaler.is_enabled()
+        timer.backward(scaler.scale(objective) if scaling else objective, views, images)
         with timer.stage("optimizer"):
+            if world.enabled:  # every rank's gradient of its share -> the whole batch's, on every rank
+                n_all = float(distributed.all_sum(torch.tensor(float(len(labels)), device=model.device), world))
+                distributed.average_gradients(all_params, len(labels) / n_all, world)
+            if scaling:
+                scaler.unscale_(opt)
             if not _grads_finite(all_params):
                 acc.skipped += 1
                 opt.zero_grad(set_to_none=True)
-                log.warning("epoch %d step %d: non-finite gradients, step skipped", epoch + 1, step + 1)
+                if scaling:  # fp16: the scale was too high for this step; it is lowered (expected now and then)
+                    scaler.update()
+                else:
+                    log.warning("epoch %d step %d: non-finite gradients, step skipped", epoch + 1, step + 1)
                 step += 1
                 timer.step_done()  # its time was spent: count the step in the per-step means
                 continue
@@ -337,7 +384,13 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
             if groups["selector"]:
                 g_norm = float(torch.nn.utils.clip_grad_norm_(groups["selector"], cfg.optim.clip_selector))
                 acc.clipped += int(g_norm > cfg.optim.clip_selector)
-            opt.step()
+            if scaling:
+                scaler.step(opt)
+                scaler.update()
+            else:
+                opt.step()
+            if ema is not None:
+                ema.update(model)
         timer.step_done()
         n = len(labels)
         acc.loss += float(loss.detach()) * n
@@ -355,8 +408,43 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
     return acc.result(), step
 
 
-def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict) -> None:
+def check_world(cfg: TrainConfig, world: distributed.World) -> None:
+    """One-line errors for settings that several processes cannot share (before any work)."""
+    if cfg.batch_size < 2 * world.size:
+        raise ValueError(f"batch_size={cfg.batch_size} with {world.size} processes (WORLD_SIZE): batch_size is the global "
+                         f"batch and every process needs at least 2 shapes of it; use batch_size >= {2 * world.size}")
+    if cfg.selector.hypotheses > 1 or cfg.optim.flip_explore > 0:
+        raise ValueError(f"selector.hypotheses={cfg.selector.hypotheses} / optim.flip_explore={cfg.optim.flip_explore} "
+                         f"with {world.size} processes: their per-shape statistics are not shared between processes "
+                         "yet; run them in one process")
+
+
+def check_split_sizes(datasets: dict, world: distributed.World) -> None:
+    """More processes than shapes in a split: one line naming the split (exit 2)."""
+    for split, ds in datasets.items():
+        if len(ds) < world.size:
+            raise ValueError(f"{world.size} processes (WORLD_SIZE) but the {split} split has {len(ds)} shapes: use at "
+                             f"most {len(ds)} processes")
+
+
+def all_ranks_epoch(tr: dict, world: distributed.World, device) -> dict:
+    """One epoch's ``_Epoch.result`` over every rank: sums of losses, hits and shapes (the gradient
+    norms and counts are the same on every rank, taken after the gradients were averaged)."""
+    sums = distributed.all_sum(torch.tensor([tr["loss"] * tr["seen"], tr["acc"] * tr["seen"], float(tr["seen"])],
+                                            dtype=torch.float64, device=device), world).tolist()
+    n = max(sums[2], 1.0)
+    return {**tr, "loss": sums[0] / n, "acc": sums[1] / n, "seen": int(sums[2])}
+
+
+def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, scaler, ema) -> None:
     model.load_state_dict(state["model"])
+    if "scaler" in state:
+        scaler.load_state_dict(state["scaler"])
+    if ema is not None:
+        if "ema" not in state:
+            raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} holds no weight average: it was trained "
+                                                "without optim.ema_decay; resume without it or start a new run")
+        ema.load_state_dict(state["ema"])
     if "train_bn" in state:  # bn_recalibrate_scope=eval: training goes on from its own statistics
         precise_bn.restore(model, state["train_bn"])
     opt.load_state_dict(state["optimizer"])
@@ -368,7 +456,8 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict) -> 
     sched.last_epoch = start
     seeding.set_rng_state(state["rng"])
     src_best = Path(cfg.ckpt_path).with_name("best.pt")
-    if src_best.is_file() and src_best.resolve() != (run_dir / "best.pt").resolve():
+    if (distributed.from_env().main and src_best.is_file()
+            and src_best.resolve() != (run_dir / "best.pt").resolve()):
         shutil.copyfile(src_best, run_dir / "best.pt")
     say(run_dir, f"resumed from {cfg.ckpt_path} at epoch {start + 1}/{cfg.epochs}")
 
@@ -392,11 +481,18 @@ def train(cfg, run_dir, build_model=None) -> dict:
     ``bench.axis_views`` pass their own)."""
     cfg = as_config(cfg)
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    device = torch.device(cfg.device)
+    world = distributed.from_env()  # torchrun: several processes, one run (engine/distributed.py)
+    if world.enabled:
+        check_world(cfg, world)
+    device = torch.device(distributed.init(world, cfg.device))
+    if world.main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
     cfg_dict = config_dict(cfg)
-    origin = provenance(cfg.device)
-    (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
+    origin = {**provenance(str(device)), "world_size": world.size}
+    if world.main:
+        (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
     steps_on_views = cfg.selector.name == "optimized" and cfg.selector.opt_steps > 0
     problem = (cfg.renderer.camera_gradient_problem()
                if ((cfg.selector.learned and not cfg.selector.from_ckpt and cfg.optim.selector_grad == "autograd")
@@ -412,6 +508,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
     seeding.seed_everything(cfg.seed)
     datasets = make_datasets(cfg)
     classes = list(datasets["train"].classes)
+    if world.enabled:
+        check_split_sizes(datasets, world)
     loaders = {s: eval_loader(cfg, datasets[s]) for s in ("val", "test")}
     model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
     if cfg.selector.from_ckpt:  # view transfer: G from another run, frozen (a resumed run has it in its own state)
@@ -420,6 +518,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
         else:
             view_transfer.freeze_selector(model)
     opt, sched = make_optimizer(cfg, model)
+    scaler = grad_scaler(cfg.precision, device)
+    ema = ModelEMA(model, cfg.optim.ema_decay) if cfg.optim.ema_decay is not None else None
     loss_fn = classification.loss_fn(cfg.task)
 
     start, best_acc, best_epoch, skipped, history, step = 0, -1.0, -1, 0, [], 0
@@ -428,7 +528,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
         if list(resume.get("classes", classes)) != classes:
             raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
                                                 f"{resume['classes']} but the dataset has {classes}")
-        _resume(cfg, run_dir, model, opt, sched, resume)
+        _resume(cfg, run_dir, model, opt, sched, resume, scaler, ema)
+        distributed.barrier(world)  # rank 0 has copied best.pt beside the run
         start = int(resume["epoch"])
         best_acc, best_epoch = float(resume["best_val_acc"]), int(resume["best_epoch"]) - 1
         if not (run_dir / "best.pt").is_file():  # best.pt did not travel with last.pt: select anew
@@ -441,10 +542,10 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 # epochs count from 1 as in metrics.json: "epoch" = epochs completed, "best_epoch" 1-based (0: none)
                 "format": checkpoint.FORMAT, "epoch": epoch + 1, "step": step, "rng": seeding.rng_state(),
                 "config": cfg_dict, "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "skipped_steps": skipped,
-                "history": history,
+                "history": history, "scaler": scaler.state_dict(), **({"ema": ema.state_dict()} if ema else {}),
                 "classes": classes, "provenance": origin}
 
-    logger = RunLogger(run_dir, cfg.logger)
+    logger = RunLogger(run_dir, cfg.logger if world.main else replace(cfg.logger, tensorboard=False))
     timer = StepTimer(device)
     try:
         with cost.peak_memory(device) as train_memory:
@@ -457,9 +558,11 @@ def train(cfg, run_dir, build_model=None) -> dict:
                         say(run_dir, f"epoch {epoch + 1}: ViewGCN stage 2 (the whole network); model selection "
                                      "counts from here")
                 lrs = {f"lr_{g['name']}": g["lr"] for g in opt.param_groups}
-                tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch), opt, cfg, epoch, loss_fn,
-                                           timer, logger, step)
+                tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch, world), opt, cfg, epoch,
+                                           loss_fn, timer, logger, step, scaler=scaler, ema=ema, world=world)
                 train_seconds += time.perf_counter() - t0
+                if world.enabled:  # the epoch's sums over every rank's share
+                    tr = all_ranks_epoch(tr, world, model.device)
                 train_shapes += tr["seen"]
                 skipped += tr["skipped"]
                 if exploring_flips(model, cfg, epoch):
@@ -481,9 +584,14 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 if cfg.optim.bn_recalibrate:
                     if cfg.optim.bn_recalibrate_scope == "eval":
                         train_bn = precise_bn.running_statistics(model)
-                    precise_bn.recalibrate(model, train_loader(cfg, datasets["train"], epoch), cfg.optim.bn_recalibrate)
-                val = classification.evaluate(model, loaders["val"], len(classes), desc="val",
-                                              progress=cfg.logger.progress)
+                    precise_bn.recalibrate(model, train_loader(cfg, datasets["train"], epoch, world),
+                                           cfg.optim.bn_recalibrate)
+                distributed.broadcast_buffers(model, world)  # rank 0's BatchNorm statistics everywhere
+                if ema is not None:
+                    distributed.broadcast_buffers(ema.model, world)
+                val = evaluate_split(model, datasets["val"], cfg, len(classes), "val", world)
+                val_ema = (evaluate_split(ema.model, datasets["val"], cfg, len(classes), "val (average)", world)
+                           if ema is not None else None)
                 sched.step()
                 seconds = time.perf_counter() - t0
                 offsets = view_report(model, val["azim"], val["elev"])
@@ -493,6 +601,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
                                 "skipped": tr["skipped"], "clipped": tr["clipped"],
                                 "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
                                 **offsets, **detail, **lrs, "seconds": seconds,
+                                **({"val_acc_ema": val_ema["acc"]} if val_ema is not None else {}),
                                 **({"views_flipped": model.polarity.flipped.tolist()} if model.polarity is not None else {}),
                                 **({"hypothesis_active": int(model.selector.active), "hypothesis_losses": hypothesis_losses}
                                    if model.hypotheses is not None else {})})
@@ -508,32 +617,40 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 logger.histogram("views/elev", val["elev"], step)
                 if val["images"] is not None:
                     logger.views("views/val", val["images"], step)
-                improved = val["acc"] > best_acc
+                use_ema = val_ema is not None and val_ema["acc"] > val["acc"]  # the average is the better model now
+                score = val_ema["acc"] if use_ema else val["acc"]
+                improved = score > best_acc
                 if improved:
-                    best_acc, best_epoch = val["acc"], epoch
+                    best_acc, best_epoch = score, epoch
                 state = payload(epoch)
                 if train_bn is not None:
                     state["train_bn"] = train_bn
-                if improved:
-                    checkpoint.save_atomic(run_dir / "best.pt", state)
-                checkpoint.save_atomic(run_dir / "last.pt", state)
+                if improved and world.main:
+                    checkpoint.save_atomic(run_dir / "best.pt", {**state, "model": ema.state_dict(), "ema_selected": True}
+                                           if use_ema else state)
+                if world.main:
+                    checkpoint.save_atomic(run_dir / "last.pt", state)
                 if train_bn is not None:
                     precise_bn.restore(model, train_bn)
                 say(run_dir, f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
-                      f"val acc {val['acc']:.3f}{' (best)' if improved else ''} | "
+                      f"val acc {val['acc']:.3f}"
+                      + (f" average {val_ema['acc']:.3f}" if val_ema is not None else "")
+                      + f"{' (best' + (': the average)' if use_ema else ')') if improved else ''} | "
                       f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
                       + (f"detail seen {detail['val_detail_seen']:.2f} | " if detail else "") + f"{seconds:.1f}s")
 
+        distributed.barrier(world)  # rank 0's files are written before anyone reads them
         if not (run_dir / "best.pt").is_file():  # resumed at the last epoch without a best.pt
             log.warning("no best.pt in %s: testing the last model", run_dir)
             best_acc, best_epoch = history[-1]["val_acc"] if history else -1.0, start - 1
-            checkpoint.save_atomic(run_dir / "best.pt", payload(start - 1))
+            if world.main:
+                checkpoint.save_atomic(run_dir / "best.pt", payload(start - 1))
+            distributed.barrier(world)
         best = checkpoint.load(run_dir / "best.pt", map_location=device)
         model.load_state_dict(best["model"])
         with cost.peak_memory(device) as infer_memory:
             t_test = time.perf_counter()
-            test = classification.evaluate(model, loaders["test"], len(classes), desc="test",
-                                           progress=cfg.logger.progress)
+            test = evaluate_split(model, datasets["test"], cfg, len(classes), "test", world)
             infer_seconds = time.perf_counter() - t_test
         first = next(iter(loaders["test"]), None)
         costs = cost.run_cost(model, cfg, train_seconds=train_seconds, train_shapes=train_shapes,
@@ -550,13 +667,16 @@ def train(cfg, run_dir, build_model=None) -> dict:
         "test_per_class_acc": dict(zip(classes, test["per_class_acc"])),
         "confusion_matrix": test["confusion"], "classes": classes, "test_size": test["n"], "split": "test",
         "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
+        "best_weights": "average" if best.get("ema_selected") else "raw",
         "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
         "step_seconds": timer.means(), "cost": costs,
         **{f"test_{k}": v for k, v in view_report(model, test["azim"], test["elev"]).items()},
         **{f"test_{k}": v for k, v in detail_report(datasets["test"], test).items()},
-        "history": history, "config": cfg_dict, "provenance": origin,
+        "history": history, "config": cfg_dict, "provenance": origin, "world_size": world.size,
     }
+    if not world.main:
+        return metrics
     if hasattr(datasets["test"], "detail_angles") and test["azim"].numel():
         detail_angles_png(datasets["test"].detail_angles(test["azim"].double().numpy(), test["elev"].double().numpy(),
                                                          test["dist"].double().numpy()), run_dir / "detail_angles.png")

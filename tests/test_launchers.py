@@ -1,0 +1,132 @@
+"""Sweeps beyond one process at a time: the joblib and submitit launchers, the threads each job
+takes, a requeued cluster job going on from its last.pt, and the sweep summary written on demand."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from mvtn_exp.cli.train import launcher_threads, usable_cores
+
+ROOT = Path(__file__).resolve().parents[1]
+JOBLIB = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
+LOCAL = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.LocalLauncher"
+SLURM = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> str:
+    return str(tmp_path_factory.mktemp("synthetic_cache"))
+
+
+def _cli(args, env=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=timeout, env={**os.environ, **(env or {})})
+
+
+def _tiny(cache) -> list[str]:
+    return ["epochs=1", "views=2", "image_size=32", "dataset.num_per_class=[4,2,2]", "batch_size=8",
+            f"dataset.root={cache}", "logger=none"]
+
+
+@pytest.mark.parametrize("target,n_jobs,cores,threads", [
+    (JOBLIB, -1, 16, 1), (JOBLIB, -2, 16, 1), (JOBLIB, 1, 16, 16), (JOBLIB, 2, 16, 8), (JOBLIB, 3, 16, 5),
+    (JOBLIB, 32, 16, 1), (JOBLIB, -2, 2, 2), (JOBLIB, 2, 2, 1), (LOCAL, None, 16, 1), (SLURM, None, 16, None),
+    ("hydra._internal.core_plugins.basic_launcher.BasicLauncher", None, 16, None),
+])
+def test_jobs_sharing_the_cores_split_them(target, n_jobs, cores, threads):
+    launcher = OmegaConf.create({"_target_": target, **({"n_jobs": n_jobs} if n_jobs is not None else {})})
+    assert launcher_threads(launcher, cores) == threads
+
+
+def test_submitit_local_cpus_per_task_sets_the_threads():
+    assert launcher_threads(OmegaConf.create({"_target_": LOCAL, "cpus_per_task": 3}), 16) == 3
+
+
+@pytest.fixture(scope="module")
+def sweeps(cache, tmp_path_factory) -> dict:
+    """The tiny two-seed sweep under each launcher, run once for the tests below."""
+    out = {}
+    for name, launcher in (("joblib", ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"]),
+                           ("submitit_local", ["hydra/launcher=submitit_local"])):
+        sweep = tmp_path_factory.mktemp(name) / "sweep"
+        r = _cli(["-m", *launcher, *_tiny(cache), "seed=0,1", f"hydra.sweep.dir={sweep}"])
+        assert r.returncode == 0, r.stderr[-3000:]
+        out[name] = sweep
+    return out
+
+
+@pytest.mark.parametrize("name,threads", [("joblib", max(1, usable_cores() // 2)), ("submitit_local", 1)])
+def test_parallel_sweep_runs_every_job_with_its_share_of_the_cores(sweeps, name, threads):
+    """Two jobs side by side: each finishes, records the threads it ran with, and the sweep
+    summary is written when the sweep ends (by the submitting process)."""
+    sweep = sweeps[name]
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert len(jobs) == 2
+    for job in jobs:
+        m = json.loads((job / "metrics.json").read_text())
+        assert m["config"]["threads"] == threads and m["provenance"]["threads"] == threads
+    rows = (sweep / "summary.csv").read_text().splitlines()
+    assert len(rows) == 3 and all(",ok," in row for row in rows[1:])
+
+
+def test_requeued_cluster_job_goes_on_from_its_last_checkpoint(cache, tmp_path):
+    """A job started again in its run dir by submitit (SUBMITIT_EXECUTOR set) with a last.pt and
+    no metrics.json resumes from it instead of starting over; its first epoch is kept."""
+    run = tmp_path / "run"
+    r = _cli([*_tiny(cache), f"hydra.run.dir={run}"])
+    assert r.returncode == 0, r.stderr[-2000:]
+    first = json.loads((run / "metrics.json").read_text())
+    (run / "metrics.json").unlink()  # as if the job had been stopped after saving epoch 1
+    r = _cli([*_tiny(cache), "epochs=2", f"hydra.run.dir={run}"], env={"SUBMITIT_EXECUTOR": "slurm"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((run / "metrics.json").read_text())
+    assert len(m["history"]) == 2 and m["history"][0] == first["history"][0]
+    assert "requeued: going on from" in (run / "train.log").read_text()
+
+
+def test_summary_on_demand_lists_unfinished_jobs_and_refuses_a_non_sweep(sweeps, tmp_path, capsys):
+    import shutil
+
+    sweep = tmp_path / "sweep"
+    shutil.copytree(sweeps["joblib"], sweep)
+    job = next(p for p in sorted(sweep.iterdir()) if p.name.startswith("1_"))
+    (job / "metrics.json").unlink()  # a job the cluster has not finished yet
+    for name in ("summary.csv", "summary.md"):
+        (sweep / name).unlink()
+    r = _cli(["--summary", str(sweep)])
+    assert r.returncode == 1 and (sweep / "summary.csv").is_file()
+    assert r.stderr.strip().splitlines()[-1].startswith("mvtn-train: 1 of 2 sweep jobs did not finish: 1_")
+    assert ",incomplete," in (sweep / "summary.csv").read_text()
+    r = _cli(["--summary", str(tmp_path / "nope")])
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "no such folder" in r.stderr, r.stderr
+    from mvtn_exp.cli.train import summary
+
+    for args, needle in (([str(tmp_path)], "no sweep jobs"), ([], "takes one sweep folder")):
+        assert summary(args) == 2
+        assert needle in capsys.readouterr().err
+
+
+def test_a_launcher_that_is_not_installed_is_one_line(tmp_path):
+    r = _cli(["-m", "hydra/launcher=ray", "seed=0,1", f"hydra.sweep.dir={tmp_path / 'sweep'}"])
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "hydra/launcher=ray" in r.stderr and "basic, joblib, slurm, submitit_local, submitit_slurm" in r.stderr
+    assert not (tmp_path / "sweep").exists()
+
+
+def test_slurm_launcher_config_carries_the_cluster_settings():
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
+        cfg = compose("train", overrides=["hydra/launcher=slurm", "hydra.launcher.partition=gpu"],
+                      return_hydra_config=True)
+    launcher = cfg.hydra.launcher
+    assert launcher._target_ == SLURM and launcher.partition == "gpu"
+    for key in ("gpus_per_node", "cpus_per_task", "mem_gb", "timeout_min", "array_parallelism"):
+        assert launcher[key] >= 1, key
+    assert launcher.max_num_timeout >= 1  # requeued after a timeout or preemption

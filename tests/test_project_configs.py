@@ -1,0 +1,61 @@
+"""The working directory's configs/ (or MVTN_CONFIGS) is searched before the packaged configs."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+
+from mvtn_exp.schema import TrainConfig, register_configs
+
+ROOT = Path(__file__).resolve().parents[1]
+register_configs()
+
+
+def _compose(overrides):
+    with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
+        cfg = compose("train", overrides=overrides)
+    return OmegaConf.to_object(cfg).validate()
+
+
+@pytest.fixture
+def user_configs(tmp_path, monkeypatch):
+    folder = tmp_path / "configs"
+    (folder / "experiment").mkdir(parents=True)
+    (folder / "mvnet").mkdir()
+    (folder / "experiment" / "mine.yaml").write_text("# @package _global_\nviews: 3\nepochs: 5\n")
+    (folder / "mvnet" / "mvcnn.yaml").write_text("name: mvcnn\npool: mean\ndropout: 0.3\n")  # replaces the packaged one
+    monkeypatch.setenv("MVTN_CONFIGS", str(folder))
+    return folder
+
+
+def test_a_user_experiment_is_found_and_a_same_named_file_replaces_the_packaged_one(user_configs):
+    cfg = _compose(["+experiment=mine"])
+    assert (cfg.views, cfg.epochs) == (3, 5)
+    assert (cfg.mvnet.pool, cfg.mvnet.dropout) == ("mean", 0.3)
+
+
+def test_without_the_folder_the_packaged_configs_alone(tmp_path, monkeypatch):
+    monkeypatch.setenv("MVTN_CONFIGS", str(tmp_path / "absent"))
+    cfg = _compose([])
+    assert (cfg.mvnet.pool, cfg.mvnet.dropout) == ("max", 0.0)
+    with pytest.raises(Exception, match="experiment/mine"):
+        _compose(["+experiment=mine"])
+
+
+def test_the_repositorys_example_runs_from_the_command_line_with_a_bad_key_refused(tmp_path):
+    """From the repository root, configs/experiment/example_small_views.yaml composes through the
+    CLI's own checks; a user file with an unknown key is one line, exit 2."""
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "+experiment=example_small_views", "--cfg", "job"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "views: 2" in r.stdout and "image_size: 32" in r.stdout, r.stderr[-1500:]
+    bad = tmp_path / "configs" / "experiment"
+    bad.mkdir(parents=True)
+    (bad / "typo.yaml").write_text("# @package _global_\nviewz: 3\n")
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "+experiment=typo",
+                        f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "viewz" in r.stderr, r.stderr[-1500:]
+    assert not (tmp_path / "run").exists()
