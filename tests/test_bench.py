@@ -30,6 +30,7 @@ def _positive_finite(x) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
 
 
+@pytest.mark.slow  # 22 s: the renderer rows are tested in-process; make test-all runs it
 def test_quick_benchmark_cli(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "mvtn_exp.cli.bench", "quick=true", "repeats=2", "progress=false", f"hydra.run.dir={tmp_path}"],

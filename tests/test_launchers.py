@@ -51,13 +51,17 @@ def test_submitit_local_cpus_per_task_sets_the_threads():
 @pytest.fixture(scope="module")
 def sweeps(cache, tmp_path_factory) -> dict:
     """The tiny two-seed sweep under each launcher, run once for the tests below."""
-    out = {}
+    out, procs = {}, []
     for name, launcher in (("joblib", ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"]),
                            ("submitit_local", ["hydra/launcher=submitit_local"])):
         sweep = tmp_path_factory.mktemp(name) / "sweep"
-        r = _cli(["-m", *launcher, *_tiny(cache), "seed=0,1", f"hydra.sweep.dir={sweep}"])
-        assert r.returncode == 0, r.stderr[-3000:]
+        procs.append(subprocess.Popen([sys.executable, "-m", "mvtn_exp.cli.train", "-m", *launcher, *_tiny(cache),
+                                       "seed=0,1", f"hydra.sweep.dir={sweep}"], cwd=ROOT,
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
         out[name] = sweep
+    for p in procs:  # the two sweeps run side by side
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err[-3000:]
     return out
 
 
@@ -75,19 +79,23 @@ def test_parallel_sweep_runs_every_job_with_its_share_of_the_cores(sweeps, name,
     assert len(rows) == 3 and all(",ok," in row for row in rows[1:])
 
 
-def test_requeued_cluster_job_goes_on_from_its_last_checkpoint(cache, tmp_path):
-    """A job started again in its run dir by submitit (SUBMITIT_EXECUTOR set) with a last.pt and
-    no metrics.json resumes from it instead of starting over; its first epoch is kept."""
+def test_a_requeued_cluster_job_goes_on_from_its_last_checkpoint(tmp_path, monkeypatch):
+    """Started again by submitit (SUBMITIT_EXECUTOR set) in a run dir holding last.pt and no
+    metrics.json, the job resumes from it (the resume itself: test_train_e2e's CLI resume tests);
+    a first start, a finished run, or a run outside submitit does not."""
+    from mvtn_exp.cli.train import requeued_checkpoint
+
     run = tmp_path / "run"
-    r = _cli([*_tiny(cache), f"hydra.run.dir={run}"])
-    assert r.returncode == 0, r.stderr[-2000:]
-    first = json.loads((run / "metrics.json").read_text())
-    (run / "metrics.json").unlink()  # as if the job had been stopped after saving epoch 1
-    r = _cli([*_tiny(cache), "epochs=2", f"hydra.run.dir={run}"], env={"SUBMITIT_EXECUTOR": "slurm"})
-    assert r.returncode == 0, r.stderr[-2000:]
-    m = json.loads((run / "metrics.json").read_text())
-    assert len(m["history"]) == 2 and m["history"][0] == first["history"][0]
-    assert "requeued: going on from" in (run / "train.log").read_text()
+    run.mkdir()
+    monkeypatch.setenv("SUBMITIT_EXECUTOR", "slurm")
+    assert requeued_checkpoint(run) is None  # first start
+    (run / "last.pt").write_bytes(b"x")
+    assert requeued_checkpoint(run) == run / "last.pt"
+    (run / "metrics.json").write_text("{}")
+    assert requeued_checkpoint(run) is None  # finished
+    (run / "metrics.json").unlink()
+    monkeypatch.delenv("SUBMITIT_EXECUTOR")
+    assert requeued_checkpoint(run) is None  # not a cluster job
 
 
 def test_summary_on_demand_lists_unfinished_jobs_and_refuses_a_non_sweep(sweeps, tmp_path, capsys):

@@ -69,20 +69,24 @@ def test_fp16_on_cpu_and_bad_precisions_are_refused_naming_the_keys(cache):
 
 
 def test_weight_average_follows_its_formula():
-    """After two updates: ema = d^2 w0 + d (1 - d) w1 + (1 - d) w2; buffers are copied."""
+    """After updates at steps 100 and 101 (past the warm-up, d = 0.9): ema = d^2 w0 + d (1 - d) w1
+    + (1 - d) w2, for the weights and the BatchNorm statistics alike; the batch counter is copied.
+    The warm-up: d_0 = 0.1, d_t -> decay."""
     torch.manual_seed(0)
     net = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.BatchNorm1d(2))
     ema, d = ModelEMA(net, 0.9), 0.9
-    w = [net[0].weight.detach().clone()]
-    for _ in range(2):
+    w, m = [net[0].weight.detach().clone()], [net[1].running_mean.clone()]
+    assert ema.decay_at(0) == pytest.approx(0.1) and ema.decay_at(10) == pytest.approx(11 / 20)
+    for step in (100, 101):
         with torch.no_grad():
             net[0].weight.add_(torch.randn_like(net[0].weight))
         net(torch.randn(4, 3))  # moves the BatchNorm statistics
         w.append(net[0].weight.detach().clone())
-        ema.update(net)
-    expected = d * d * w[0] + d * (1 - d) * w[1] + (1 - d) * w[2]
-    torch.testing.assert_close(ema.model[0].weight, expected)
-    assert torch.equal(ema.model[1].running_mean, net[1].running_mean)
+        m.append(net[1].running_mean.clone())
+        ema.update(net, step)
+    for got, x in ((ema.model[0].weight, w), (ema.model[1].running_mean, m)):
+        torch.testing.assert_close(got, d * d * x[0] + d * (1 - d) * x[1] + (1 - d) * x[2])
+    assert int(ema.model[1].num_batches_tracked) == int(net[1].num_batches_tracked) == 2
     assert not ema.model.training and not any(p.requires_grad for p in ema.model.parameters())
 
 

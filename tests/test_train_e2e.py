@@ -245,6 +245,7 @@ def test_cli_real_dataset_missing(tmp_path):
     assert status["status"] == "error" and "not found at" in status["error"]
 
 
+@pytest.mark.slow  # 13 s: the launcher tests' sweeps write and check a summary too
 def test_cli_multirun_summary(cache, tmp_path):
     sweep = tmp_path / "sweep"
     r = _cli(["-m", *_tiny_args(cache), "selector=circular,spherical", "seed=0,1", "logger.tensorboard=false",

@@ -87,9 +87,14 @@ def make_datasets(cfg: TrainConfig) -> dict:
     return datasets
 
 
+def _pin(cfg: TrainConfig) -> bool:
+    """Pinned host memory for the loaders when training on CUDA (faster copies to the device)."""
+    return str(cfg.device).startswith("cuda")
+
+
 def eval_loader(cfg: TrainConfig, dataset) -> DataLoader:
     return DataLoader(dataset, batch_size=cfg.batch_size, shuffle=False, collate_fn=collate_shapes,
-                      num_workers=cfg.dataset.num_workers)
+                      num_workers=cfg.dataset.num_workers, pin_memory=_pin(cfg))
 
 
 def train_loader(cfg: TrainConfig, dataset, epoch: int, world: distributed.World = distributed.World()) -> DataLoader:
@@ -99,14 +104,14 @@ def train_loader(cfg: TrainConfig, dataset, epoch: int, world: distributed.World
     (``distributed.shard``), and a last batch that cannot give each at least 2 shapes is dropped."""
     g = torch.Generator().manual_seed(cfg.seed * 100003 + epoch)
     if world.enabled:
-        order = torch.randperm(len(dataset), generator=g).tolist()  # what the one-process loader draws
+        order = torch.randperm(len(dataset), generator=g).tolist()
         batches = [order[i:i + cfg.batch_size] for i in range(0, len(order), cfg.batch_size)]
         batches = [distributed.shard(b, world) for b in batches if len(b) >= 2 * world.size]
         return DataLoader(dataset, batch_sampler=batches, collate_fn=collate_shapes,
-                          num_workers=cfg.dataset.num_workers)
+                          num_workers=cfg.dataset.num_workers, pin_memory=_pin(cfg))
     drop_last = len(dataset) % cfg.batch_size == 1
     return DataLoader(dataset, batch_size=cfg.batch_size, shuffle=True, generator=g, collate_fn=collate_shapes,
-                      num_workers=cfg.dataset.num_workers, drop_last=drop_last)
+                      num_workers=cfg.dataset.num_workers, drop_last=drop_last, pin_memory=_pin(cfg))
 
 
 def evaluate_split(model, dataset, cfg: TrainConfig, num_classes: int, desc: str,
@@ -390,7 +395,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
             else:
                 opt.step()
             if ema is not None:
-                ema.update(model)
+                ema.update(model, step)
         timer.step_done()
         n = len(labels)
         acc.loss += float(loss.detach()) * n
