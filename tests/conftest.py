@@ -58,3 +58,15 @@ def tiny_config(cache, **kw) -> dict:
             node = node.setdefault(part, {})
         node[leaf] = value
     return cfg
+
+
+def run_in_processes(target, args_per_process: list[tuple], timeout: float = 120) -> None:
+    """Start ``target(*args)`` in one spawned process per entry, side by side; each must exit 0."""
+    import multiprocessing as mp
+
+    procs = [mp.get_context("spawn").Process(target=target, args=args) for args in args_per_process]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout)
+        assert p.exitcode == 0

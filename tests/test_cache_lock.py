@@ -1,13 +1,14 @@
 """Processes that start together on a cold cache build it once: the others wait, then load it."""
 from __future__ import annotations
 
-import multiprocessing as mp
 import time
 from pathlib import Path
 
 import numpy as np
 
 from mvtn_exp.data.packed import cached_arrays
+
+from conftest import run_in_processes
 
 KEYS = ("x",)
 
@@ -25,14 +26,7 @@ def _build_in_process(path: str, log: str, out: str) -> None:
 
 def test_two_processes_on_a_cold_cache_build_it_once(tmp_path):
     path, log = tmp_path / "cache.npz", tmp_path / "built.log"
-    ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_build_in_process, args=(str(path), str(log), str(tmp_path / f"out{i}.npy")))
-             for i in range(2)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join(120)
-        assert p.exitcode == 0
+    run_in_processes(_build_in_process, [(str(path), str(log), str(tmp_path / f"out{i}.npy")) for i in range(2)])
     assert log.read_text().count("built") == 1
     for i in range(2):
         assert np.array_equal(np.load(tmp_path / f"out{i}.npy"), np.arange(5))

@@ -104,18 +104,13 @@ def test_averaged_gradients_are_the_whole_batchs_even_with_unequal_shares(tmp_pa
     import socket
 
     import torch
-    import torch.multiprocessing as tmp
+
+    from conftest import run_in_processes
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    procs = [tmp.get_context("spawn").Process(target=_average_in_group, args=(r, port, str(tmp_path / f"g{r}.pt")))
-             for r in range(2)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join(120)
-        assert p.exitcode == 0
+    run_in_processes(_average_in_group, [(r, port, str(tmp_path / f"g{r}.pt")) for r in range(2)])
     torch.manual_seed(0)
     net = torch.nn.Linear(3, 2)
     x, y = torch.randn(8, 3, generator=torch.Generator().manual_seed(1)), torch.arange(8) % 2

@@ -130,6 +130,17 @@ class RandomSelector(ViewSelector):
         return f"views={self.views}, distance={self.distance}, seed={self.seed}"
 
 
+BASE_LAYOUTS = ("circular", "spherical")
+
+
+def base_layout(who: str, views: int, layout: str, elevation: float, distance: float, sphere: str) -> ViewSelector:
+    """The fixed layout another selector starts from: circular (at ``elevation``) or spherical
+    (``sphere``); an unknown ``layout`` is a one-line error naming ``who``."""
+    if layout not in BASE_LAYOUTS:
+        raise ValueError(f"{who}: layout={layout!r}; expected one of {', '.join(BASE_LAYOUTS)}")
+    return CircularSelector(views, elevation, distance) if layout == "circular" else SphericalSelector(views, distance, sphere)
+
+
 class NoisySelector(ViewSelector):
     """A fixed layout with Gaussian noise on every view, redrawn at every training call: the paper's
     alternative to learned views (std 18 degrees in azimuth and 9 in elevation: the official code's
@@ -142,18 +153,15 @@ class NoisySelector(ViewSelector):
     (the renderer takes any elevation).
     """
 
-    LAYOUTS = ("circular", "spherical")
+    LAYOUTS = BASE_LAYOUTS
 
     def __init__(self, views: int, layout: str = "circular", azim_std: float = 18.0, elev_std: float = 9.0,
                  elevation: float = 30.0, distance: float = 2.2, sphere: str = "equal_area") -> None:
         super().__init__(views)
-        if layout not in self.LAYOUTS:
-            raise ValueError(f"NoisySelector: layout={layout!r}; expected one of {', '.join(self.LAYOUTS)}")
+        self.base = base_layout("NoisySelector", views, layout, elevation, distance, sphere)
         if not (azim_std >= 0 and elev_std >= 0):
             raise ValueError(f"NoisySelector: noise std must be >= 0, got azim {azim_std}, elev {elev_std}")
         self.layout, self.azim_std, self.elev_std = layout, float(azim_std), float(elev_std)
-        self.base = (CircularSelector(views, elevation, distance) if layout == "circular"
-                     else SphericalSelector(views, distance, sphere))
 
     def forward(self, points: Tensor) -> Views:
         """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]``."""

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mvtn_exp.selectors.fixed import CircularSelector, SphericalSelector, ViewSelector, Views
+from mvtn_exp.selectors.fixed import BASE_LAYOUTS, ViewSelector, Views, base_layout
 
 OBJECTIVES = ("min_ce", "max_ce", "max_coverage", "min_coverage", "margin")
 
@@ -31,21 +31,18 @@ OBJECTIVES = ("min_ce", "max_ce", "max_coverage", "min_coverage", "margin")
 class OptimizedSelector(ViewSelector):
     """The starting layout (``forward``) and the settings of ``optimize_views``; no parameters."""
 
-    LAYOUTS = ("circular", "spherical")
+    LAYOUTS = BASE_LAYOUTS
 
     def __init__(self, views: int, layout: str = "circular", steps: int = 10, lr: float = 50.0,
                  objective: str = "min_ce", elevation: float = 30.0, distance: float = 2.2,
                  sphere: str = "equal_area") -> None:
         super().__init__(views)
-        if layout not in self.LAYOUTS:
-            raise ValueError(f"OptimizedSelector: layout={layout!r}; expected one of {', '.join(self.LAYOUTS)}")
+        self.base = base_layout("OptimizedSelector", views, layout, elevation, distance, sphere)
         if objective not in OBJECTIVES:
             raise ValueError(f"selector.objective={objective!r}: expected one of {', '.join(OBJECTIVES)}")
         if steps < 0 or not lr > 0:
             raise ValueError(f"selector.steps={steps} must be >= 0 and selector.lr={lr} > 0")
         self.layout, self.steps, self.lr, self.objective = layout, int(steps), float(lr), objective
-        self.base = (CircularSelector(views, elevation, distance) if layout == "circular"
-                     else SphericalSelector(views, distance, sphere))
 
     def forward(self, points: Tensor) -> Views:
         """``[B, N, 3] -> (azim, elev, dist)``: the starting layout, each ``[B, M]``."""
