@@ -455,3 +455,9 @@ def test_cli_unwritable_output_dir_is_one_line_before_any_work(tmp_path):
     assert "cannot write the run's output under" in r.stderr and "paths.output_dir" in r.stderr
     r = _cli(["-m", f"hydra.sweep.dir={blocker / 'sweep'}", "seed=0,1"], ROOT)
     assert r.returncode == 2 and "cannot write" in r.stderr
+
+
+def test_worker_processes_change_nothing(cache, full_run, tmp_path):
+    """dataset.num_workers=2 (workers kept between epochs and validation passes): the same run."""
+    _, full = full_run
+    _assert_same_run(train(tiny(cache, **{"dataset.num_workers": 2}), tmp_path / "w"), full)

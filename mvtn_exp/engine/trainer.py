@@ -19,10 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
-from ..data.collate import collate_shapes
 from ..data.datasets import build_dataset
 from ..model import MVTN, build_mvtn
 from ..models.precision import grad_scaler
@@ -34,7 +32,8 @@ from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from ..viz.views import detail_angles_png
-from . import checkpoint, cost, distributed, precise_bn, seeding, view_gradient
+from . import checkpoint, cost, distributed, loaders, precise_bn, seeding, view_gradient
+from .loaders import eval_loader, train_loader  # noqa: F401 (evaluation and eval_modes import them from here)
 from .ema import ModelEMA
 from .view_stats import view_stats
 from .provenance import provenance
@@ -85,33 +84,6 @@ def make_datasets(cfg: TrainConfig) -> dict:
             raise ValueError(f"dataset {cfg.dataset.name} at {cfg.dataset.root}: the {split} split is empty"
                              + (" (raise dataset.val_fraction or add shapes)" if split == "val" else ""))
     return datasets
-
-
-def _pin(cfg: TrainConfig) -> bool:
-    """Pinned host memory for the loaders when training on CUDA (faster copies to the device)."""
-    return str(cfg.device).startswith("cuda")
-
-
-def eval_loader(cfg: TrainConfig, dataset) -> DataLoader:
-    return DataLoader(dataset, batch_size=cfg.batch_size, shuffle=False, collate_fn=collate_shapes,
-                      num_workers=cfg.dataset.num_workers, pin_memory=_pin(cfg))
-
-
-def train_loader(cfg: TrainConfig, dataset, epoch: int, world: distributed.World = distributed.World()) -> DataLoader:
-    """The shuffled train loader of ``epoch``: its order depends only on (seed, epoch), so resume is exact.
-    The last incomplete batch is dropped when it would hold a single shape (BatchNorm needs >= 2).
-    With several processes (``world``) each takes its share of every global batch of ``batch_size``
-    (``distributed.shard``), and a last batch that cannot give each at least 2 shapes is dropped."""
-    g = torch.Generator().manual_seed(cfg.seed * 100003 + epoch)
-    if world.enabled:
-        order = torch.randperm(len(dataset), generator=g).tolist()
-        batches = [order[i:i + cfg.batch_size] for i in range(0, len(order), cfg.batch_size)]
-        batches = [distributed.shard(b, world) for b in batches if len(b) >= 2 * world.size]
-        return DataLoader(dataset, batch_sampler=batches, collate_fn=collate_shapes,
-                          num_workers=cfg.dataset.num_workers, pin_memory=_pin(cfg))
-    drop_last = len(dataset) % cfg.batch_size == 1
-    return DataLoader(dataset, batch_size=cfg.batch_size, shuffle=True, generator=g, collate_fn=collate_shapes,
-                      num_workers=cfg.dataset.num_workers, drop_last=drop_last, pin_memory=_pin(cfg))
 
 
 def evaluate_split(model, dataset, cfg: TrainConfig, num_classes: int, desc: str,
@@ -515,7 +487,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
     classes = list(datasets["train"].classes)
     if world.enabled:
         check_split_sizes(datasets, world)
-    loaders = {s: eval_loader(cfg, datasets[s]) for s in ("val", "test")}
+    eval_loaders = {s: eval_loader(cfg, datasets[s]) for s in ("val", "test")}
     model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
     if cfg.selector.from_ckpt:  # view transfer: G from another run, frozen (a resumed run has it in its own state)
         if resume is None:
@@ -657,7 +629,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
             t_test = time.perf_counter()
             test = evaluate_split(model, datasets["test"], cfg, len(classes), "test", world)
             infer_seconds = time.perf_counter() - t_test
-        first = next(iter(loaders["test"]), None)
+        first = next(iter(eval_loaders["test"]), None)
         costs = cost.run_cost(model, cfg, train_seconds=train_seconds, train_shapes=train_shapes,
                               infer_seconds=infer_seconds, infer_shapes=test["n"], train_memory=train_memory,
                               infer_memory=infer_memory, render_seconds=timer.seconds["render"],
@@ -666,6 +638,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
                         **{f"cost/{k}": v for k, v in costs.items() if isinstance(v, (int, float))}}, step)
     finally:
         logger.close()
+        loaders.release(*datasets.values())
 
     metrics = {
         "test_acc": test["acc"], "test_mean_class_acc": test["mean_class_acc"], "test_loss": test["loss"],
