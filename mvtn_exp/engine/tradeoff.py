@@ -147,7 +147,7 @@ def pareto_png(rows: list[dict], swept: list[str], path) -> Path:
         ax.set_xlabel(xlabel)
         ax.set_ylabel("test accuracy (mean, std over seeds)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
+        ax.legend(fontsize=8, loc="best")
     return save_figure(fig, path)
 
 
