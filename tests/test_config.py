@@ -55,6 +55,8 @@ def test_every_experiment_composes(name):
             assert cfg.selector.poi_gain == 32.0
         if name.endswith("_m1"):  # one view, picked from four raced in pooled mode
             assert cfg.views == 1 and cfg.selector.hypotheses == 4 and cfg.optim.hypothesis_mode == "pooled"
+    elif name == "tradeoff_synthetic_views":  # the study's view-dependent half: the learned recipe, swept
+        assert cfg.dataset.name == "synthetic_views" and cfg.selector.name == "mvtn_poi" and cfg.epochs == 20
     elif name.startswith(("synthetic", "tradeoff")):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups
@@ -206,7 +208,7 @@ def test_tradeoff_study_grid_composes_and_compares_fixed_with_learned():
         for value in values:
             cfg = _compose(["+experiment=tradeoff_synthetic", f"{key}={value}"])
             learned.append(cfg.selector.learned)
-            assert cfg.dataset.name == "synthetic" and cfg.epochs == 4
+            assert cfg.dataset.name == "synthetic" and cfg.epochs == 8
     assert any(learned) and not all(learned)
 
 
@@ -228,7 +230,9 @@ def test_presets_compose_and_state_their_measured_cost(name):
         assert cfg.views == 12 and cfg.image_size == 224 and cfg.selector.regressor == "official"
     else:  # on the measured front: the comment carries its accuracy and time per shape
         assert "test accuracy" in text and "ms per shape" in text and "tradeoff_synthetic" in text
-        assert not cfg.selector.learned and cfg.views == 1
+        assert cfg.views == 1 and cfg.image_size == 32
+        # the front's ends: fixed views on the hard renderer, learned views on the soft one
+        assert cfg.selector.learned == (name == "balanced") and cfg.renderer.mode == ("soft" if name == "balanced" else "hard")
 
 
 def test_presets_are_the_three_documented():
