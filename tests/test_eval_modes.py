@@ -58,16 +58,16 @@ def test_retrieval(ckpt, tmp_path):
 
 
 def test_cli_modes_and_bad_combination(ckpt, tmp_path):
-    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.eval", f"ckpt={ckpt}", "robustness=occlusion",
-                        "occlusion.ratios=[0.3]", "progress=false", f"hydra.run.dir={tmp_path / 'e'}"],
-                       capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert r.returncode == 0, r.stderr[-2000:]
-    assert Path(r.stdout.strip().splitlines()[-1]) == tmp_path / "e" / "metrics.json"
+    # both at once: each process spends most of its time starting
+    procs = [subprocess.Popen([sys.executable, "-m", "mvtn_exp.cli.eval", f"ckpt={ckpt}", *args], cwd=ROOT, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+             for args in (["robustness=occlusion", "occlusion.ratios=[0.3]", "progress=false", f"hydra.run.dir={tmp_path / 'e'}"],
+                          ["task=retrieval", "robustness=rotation", f"hydra.run.dir={tmp_path / 'b'}"])]
+    (out, err), (_, bad_err) = (p.communicate(timeout=300) for p in procs)
+    assert procs[0].returncode == 0, err[-2000:]
+    assert Path(out.strip().splitlines()[-1]) == tmp_path / "e" / "metrics.json"
     assert "occlusion" in json.loads((tmp_path / "e" / "metrics.json").read_text())
-    bad = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.eval", f"ckpt={ckpt}", "task=retrieval",
-                          "robustness=rotation", f"hydra.run.dir={tmp_path / 'b'}"],
-                         capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert bad.returncode == 2 and "robustness" in bad.stderr
+    assert procs[1].returncode == 2 and "robustness" in bad_err
 
 
 def test_view_analysis(ckpt, tmp_path):

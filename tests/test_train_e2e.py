@@ -171,6 +171,17 @@ def _cli(args, cwd, module="train"):
                           text=True, timeout=300)
 
 
+def _clis(arg_lists, cwd, module="train") -> list[subprocess.CompletedProcess]:
+    """``_cli`` for several argument lists at once (each process starts in a few seconds, mostly imports)."""
+    procs = [subprocess.Popen([sys.executable, "-m", f"mvtn_exp.cli.{module}", *args], cwd=cwd, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE) for args in arg_lists]
+    out = []
+    for args, p in zip(arg_lists, procs):
+        stdout, stderr = p.communicate(timeout=300)
+        out.append(subprocess.CompletedProcess(p.args, p.returncode, stdout, stderr))
+    return out
+
+
 def _tiny_args(cache) -> list[str]:
     return ["epochs=1", "views=2", "image_size=32", "dataset.num_per_class=[4,2,2]", "batch_size=8",
             f"dataset.root={cache}", "logger.progress=false", "logger.log_every=1"]
@@ -225,8 +236,8 @@ def test_cli_config_errors_are_one_line_exit_2(tmp_path):
              "selector=nope": ["selector/nope", "mvtn_spherical", "circular"],
              "optim.lr=abc": ["optim.lr", "optim/adamw.yaml"],
              "selector.name=nope": ["selector=", "expected one of", "selector/mvtn_spherical.yaml"]}
-    for arg, needles in cases.items():
-        r = _cli([arg, f"hydra.run.dir={tmp_path / 'run'}"], ROOT)
+    results = _clis([[arg, f"hydra.run.dir={tmp_path / 'run'}"] for arg in cases], ROOT)
+    for (arg, needles), r in zip(cases.items(), results):
         err = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(err) == 1 and "Traceback" not in r.stderr, (arg, r.stderr[-1000:])
         assert err[0].startswith("mvtn-train: config error in mvtn_exp/conf/"), err
@@ -267,7 +278,8 @@ def test_cli_resume_from_the_checkpoint_alone_goes_on_in_place(cache, tmp_path):
     """``mvtn-train ckpt_path=RUN/last.pt epochs=2``: the checkpoint's own config (no retyping),
     the same run dir, the first run's results kept."""
     run = tmp_path / "run"
-    r = _cli([*_tiny_args(cache), "logger.tensorboard=false", f"hydra.run.dir={run}"], ROOT)
+    r, bad = _clis([[*_tiny_args(cache), "logger.tensorboard=false", f"hydra.run.dir={run}"],
+                    [f"ckpt_path={tmp_path / 'nope.pt'}"]], ROOT)
     assert r.returncode == 0, r.stderr[-2000:]
     first = json.loads((run / "metrics.json").read_text())
     r = _cli([f"ckpt_path={run / 'last.pt'}", "epochs=2"], tmp_path)  # another cwd: nothing else retyped
@@ -280,7 +292,6 @@ def test_cli_resume_from_the_checkpoint_alone_goes_on_in_place(cache, tmp_path):
     assert len(kept) == 1 and json.loads(kept[0].read_text())["epochs"] == 1
     assert (run / ".hydra" / "config.yaml").is_file() and list((run / ".hydra").glob("resumed-*/overrides.yaml"))
     assert "resumed from" in (run / "train.log").read_text()
-    bad = _cli([f"ckpt_path={tmp_path / 'nope.pt'}"], ROOT)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "no such checkpoint file" in bad.stderr
 
 
@@ -450,11 +461,11 @@ def test_learned_views_without_camera_gradient_warn_once(cache, tmp_path, caplog
 def test_cli_unwritable_output_dir_is_one_line_before_any_work(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
-    r = _cli([f"paths.output_dir={blocker / 'out'}"], ROOT)
+    r, sweep = _clis([[f"paths.output_dir={blocker / 'out'}"], ["-m", f"hydra.sweep.dir={blocker / 'sweep'}", "seed=0,1"]],
+                     ROOT)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "cannot write the run's output under" in r.stderr and "paths.output_dir" in r.stderr
-    r = _cli(["-m", f"hydra.sweep.dir={blocker / 'sweep'}", "seed=0,1"], ROOT)
-    assert r.returncode == 2 and "cannot write" in r.stderr
+    assert sweep.returncode == 2 and "cannot write" in sweep.stderr
 
 
 def test_worker_processes_change_nothing(cache, full_run, tmp_path):
