@@ -33,7 +33,7 @@ from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from ..viz.views import detail_angles_png
 from . import checkpoint, cost, distributed, loaders, precise_bn, seeding, view_gradient
-from .loaders import eval_loader, train_loader  # noqa: F401 (evaluation and eval_modes import them from here)
+from .loaders import eval_loader, train_loader
 from .ema import ModelEMA
 from .view_stats import view_stats
 from .provenance import provenance
