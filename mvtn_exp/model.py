@@ -11,9 +11,7 @@ from .models.precision import autocast
 from .models.multiview import build_multiview
 from .render.renderer import MultiViewRenderer
 from .schema import SHAPES, TrainConfig
-from .selectors import build_selector
 from .selectors.hypotheses import HypothesisRace
-from .selectors.optimized import OptimizedSelector, optimize_views
 from .selectors.polarity import ViewPolarity
 
 
@@ -61,9 +59,10 @@ class MVTN(nn.Module):
     def device(self):
         return next(self.mvnet.parameters()).device
 
-    def select(self, batch: dict, all_hypotheses: bool = False):
+    def select(self, batch: dict, all_hypotheses: bool = False, refine: bool = True):
         """G: ``batch["points"] [B, N, 3]`` -> ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world
-        units); with ``all_hypotheses`` (a G holding H hypotheses) each ``[B, H * M]``."""
+        units); with ``all_hypotheses`` (a G holding H hypotheses) each ``[B, H * M]``; ``refine``:
+        the selector's per-batch work against R and C (``ViewSelector.refine``) included."""
         points = batch["points"]
         n = self.selector_points
         if n is not None and getattr(self.selector, "learned", False):
@@ -71,8 +70,8 @@ class MVTN(nn.Module):
         if all_hypotheses:
             return self.selector(points.to(self.device), all_hypotheses=True)
         views = self.selector(points.to(self.device))
-        if isinstance(self.selector, OptimizedSelector):  # per-batch steps on the views (selectors/optimized.py)
-            views = optimize_views(self, batch, views, self.selector)
+        if refine:
+            views = self.selector.refine(self, batch, views)
         return views if self.polarity is None else self.polarity(views)
 
     def render_output(self, batch: dict, azim, elev, dist):
@@ -95,35 +94,6 @@ class MVTN(nn.Module):
                 "selector": [p for p in self.selector.parameters() if p.requires_grad]}
 
 
-def build_selector_from(cfg: TrainConfig) -> nn.Module:
-    """G from ``cfg.selector`` / ``cfg.point_encoder`` with M = ``cfg.views``."""
-    s = cfg.selector
-    if s.name == "random":
-        return build_selector("random", cfg.views, distance=s.distance, seed=cfg.seed)
-    if s.name == "circular":
-        return build_selector("circular", cfg.views, elevation=s.elevation, distance=s.distance)
-    if s.name == "spherical":
-        return build_selector("spherical", cfg.views, distance=s.distance, sphere=s.sphere)
-    if s.name == "optimized":
-        return build_selector("optimized", cfg.views, layout=s.base_layout, steps=s.opt_steps, lr=s.opt_lr,
-                              objective=s.opt_objective, elevation=s.elevation, distance=s.distance, sphere=s.sphere)
-    if s.name == "noisy":
-        return build_selector("noisy", cfg.views, layout=s.base_layout, azim_std=s.noise_azim, elev_std=s.noise_elev,
-                              elevation=s.elevation, distance=s.distance, sphere=s.sphere)
-    if s.name == "mvtn_poi":
-        return build_selector("mvtn_poi", cfg.views, distance=s.distance, gain=s.poi_gain, sphere=s.sphere,
-                              cache=s.poi_cache, learn_gain=s.poi_learn_gain, hypotheses=s.hypotheses)
-    pe = cfg.point_encoder
-    kw = dict(point_encoder=pe.name, features=pe.features, distance=s.distance, learn_distance=s.learn_distance,
-              distance_bound=s.distance_bound, azim_bound=s.azim_bound, elev_bound=s.elev_bound,
-              init_std=s.init_std, point_encoder_kwargs=pe.kwargs(), regressor=s.regressor)
-    if s.name == "mvtn_circular":
-        kw["elevation"] = s.elevation
-    else:
-        kw["sphere"] = s.sphere
-    return build_selector(s.name, cfg.views, **kw)
-
-
 def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
     """G, R and C as ``cfg`` (a validated ``TrainConfig``) describes them, for ``num_classes`` classes.
 
@@ -133,10 +103,8 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
     mvnet = build_multiview(cfg.mvnet.name, cfg.backbone.name, num_classes, weights=cfg.backbone.weights,
                             **cfg.mvnet.kwargs())
     with torch.random.fork_rng(devices=[]):
-        selector = build_selector_from(cfg)
-    polarity = ViewPolarity(cfg.views) if cfg.optim.flip_explore > 0 else None
-    race = HypothesisRace(cfg.selector.hypotheses) if cfg.selector.hypotheses > 1 else None
+        selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder)
     model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,
-                 selector_points=cfg.selector.num_points, polarity=polarity, hypotheses=race)
+                 selector_points=cfg.selector.kept_points(), **cfg.selector.modules(cfg.views))
     model.precision = cfg.precision
     return model

@@ -47,7 +47,7 @@ def random_triangles(n: int, seed: int, scale: float = 1.0, size: float = 0.5, d
 
 
 def tiny_config(cache, **kw) -> dict:
-    """A tiny config as a nested dict; ``kw`` keys may be dotted (``optim.lr_selector``)."""
+    """A tiny config as a nested dict; ``kw`` keys may be dotted (``selector.lr``)."""
     cfg = {"views": 2, "image_size": 32, "epochs": 2, "batch_size": 8, "seed": 0,
            "dataset": {"root": cache, "num_per_class": [4, 2, 2]}, "backbone": {"name": "small_cnn"},
            "logger": {"progress": False, "tensorboard": False}}

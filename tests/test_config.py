@@ -48,15 +48,14 @@ def test_every_experiment_composes(name):
     assert cfg.renderer.image_size == cfg.image_size
     if name.startswith("synthetic_views"):  # the README's view-dependent comparison: same setup both sides
         assert cfg.dataset.name == "synthetic_views" and cfg.augment.rotate == "so3" and cfg.renderer.mode == "hard"
-        assert cfg.optim.selector_grad == "smoothed" and cfg.optim.selector_loss == "centered_logit"
+        assert cfg.renderer.train_light == "camera" and cfg.renderer.train_color == "white" and cfg.views == 1
         learned = "learned" in name
-        assert cfg.selector.name == ("mvtn_poi" if learned else "spherical")
-        if learned:  # G aims with the measured gain (README, issue 9)
-            assert cfg.selector.poi_gain == 32.0
-        if name.endswith("_m1"):  # one view, picked from four raced in pooled mode
-            assert cfg.views == 1 and cfg.selector.hypotheses == 4 and cfg.optim.hypothesis_mode == "pooled"
+        assert cfg.selector.name == ("poi" if learned else "spherical")
+        if learned:  # the recipe, from the selector's own defaults
+            assert cfg.selector.grad == "smoothed" and cfg.selector.loss == "centered_logit"
+            assert cfg.selector.gain == 32.0 and cfg.selector.hypotheses == 4 and cfg.selector.race_mode == "pooled"
     elif name == "tradeoff_synthetic_views":  # the study's view-dependent half: the learned recipe, swept
-        assert cfg.dataset.name == "synthetic_views" and cfg.selector.name == "mvtn_poi" and cfg.epochs == 20
+        assert cfg.dataset.name == "synthetic_views" and cfg.selector.name == "poi" and cfg.epochs == 20
     elif name.startswith(("synthetic", "tradeoff")):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups
@@ -70,10 +69,12 @@ def test_every_experiment_composes(name):
             assert cfg.point_encoder.name == "dgcnn" and cfg.point_encoder.k == 20
         # the paper's text (MVCNN 3e-4, ViewGCN 1e-3, views network 1e-3), not the official code's 1e-3 / 1e-4
         assert cfg.optim.lr == (1e-3 if cfg.mvnet.name == "viewgcn" else 3e-4)
-        assert cfg.optim.lr_selector == 1e-3 and cfg.optim.clip_selector == 30
+        if cfg.selector.learned:
+            assert cfg.selector.lr == 1e-3 and cfg.selector.clip == 30
         if "viewgcn" in name:  # two stages: single views, then the whole network
             assert cfg.mvnet.name == "viewgcn" and len(cfg.mvnet.stages) == 2 and sum(cfg.mvnet.stages) == cfg.epochs
-        assert cfg.selector.regressor == "official"  # the official code's G
+        if cfg.selector.learned:
+            assert cfg.selector.regressor == "official"  # the official code's G
     text = (CONF / "experiment" / f"{name}.yaml").read_text()
     assert text.startswith("# @package _global_")
 
@@ -97,7 +98,7 @@ def test_every_job_of_a_sweep_experiment_composes(name):
     for c in composed:
         cfg = OmegaConf.to_object(c).validate()
         seen.add((cfg.views, cfg.selector.name, cfg.mvnet.name, cfg.backbone.name, cfg.point_encoder.name,
-                  cfg.selector.learn_distance, cfg.dataset.variant, cfg.renderer.mode, cfg.image_size, cfg.seed))
+                  getattr(cfg.selector, "learn_distance", None), cfg.dataset.variant, cfg.renderer.mode, cfg.image_size, cfg.seed))
     assert len(seen) == len(checked)  # every job is a different setting
     text = (CONF / "experiment" / f"{name}.yaml").read_text()
     assert f"{len(jobs)} jobs" in text
@@ -130,24 +131,24 @@ def test_top_level_keys_reach_the_parts():
                  marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
     (["renderer.mode=wire"], "renderer.mode"),
     (["selector.regressor=mlp"], "selector.regressor"),
-    (["optim.selector_grad=finite"], "optim.selector_grad"),
-    (["optim.smoothed_pairs=0"], "optim.smoothed_pairs"),
-    (["optim.smoothed_sigma=0"], "optim.smoothed_sigma"),
-    (["optim.smoothed_every=0"], "optim.smoothed_every"),
-    (["optim.warmup_num_views=12"], "there is no warm-up"),
-    (["optim.selector_warmup_epochs=1", "optim.warmup_num_views=12"], "use warmup_views=spherical or random"),
-    (["optim.selector_warmup_epochs=1", "optim.warmup_views=ring"], "optim.warmup_views"),
-    (["optim.selector_beta1=1.0"], "optim.selector_beta1=1.0: expected a value in [0, 1)"),
-    (["optim.selector_grad=smoothed", "selector.learn_distance=true"], "needs optim.selector_grad=autograd"),
-    (["optim.selector_loss=entropy"], "optim.selector_loss"),
-    (["optim.selector_loss=centered_logit"], "needs optim.selector_grad=smoothed"),
-    (["optim.flip_explore=1.0"], "expected a probability in [0, 1)"),
-    (["optim.flip_explore=0.5", "optim.flip_epochs=0"], "optim.flip_epochs"),
-    (["selector=spherical", "optim.flip_explore=0.5"], "needs a learned selector, got selector=spherical"),
+    (["selector.grad=finite"], "selector.grad"),
+    (["selector.probe_pairs=0"], "selector.probe_pairs"),
+    (["selector.probe_sigma=0"], "selector.probe_sigma"),
+    (["selector.probe_every=0"], "selector.probe_every"),
+    (["selector.warmup_num_views=12"], "there is no warm-up"),
+    (["selector.warmup_epochs=1", "selector.warmup_num_views=12"], "use warmup_views=spherical or random"),
+    (["selector.warmup_epochs=1", "selector.warmup_views=ring"], "selector.warmup_views"),
+    (["selector.beta1=1.0"], "selector.beta1=1.0: must be in [0, 1)"),
+    (["selector.grad=smoothed", "selector.learn_distance=true"], "needs selector.grad=autograd"),
+    (["selector.loss=entropy"], "selector.loss"),
+    (["selector.loss=centered_logit"], "needs selector.grad=smoothed"),
+    (["selector.flip_explore=1.0"], "expected a probability in [0, 1)"),
+    (["selector.flip_explore=0.5", "selector.flip_epochs=0"], "selector.flip_epochs"),
+    (["selector=spherical", "selector.flip_explore=0.5"], "selector=spherical has no key 'flip_explore'"),
     (["selector=mvtn_poi", "selector.hypotheses=2"], "set both"),
-    (["selector=mvtn_spherical", "selector.hypotheses=2", "optim.hypothesis_epochs=2"], "for selector=mvtn_poi only"),
-    (["optim.bn_recalibrate=-1"], "optim.bn_recalibrate"),
-    (["optim.bn_recalibrate_scope=test"], "optim.bn_recalibrate_scope"),
+    (["selector=mvtn_spherical", "selector.hypotheses=2", "selector.race_epochs=2"], "selector=mvtn_spherical has no key 'hypotheses'"),
+    (["selector.bn_recalibrate=-1"], "selector.bn_recalibrate"),
+    (["selector.bn_recalibrate_scope=test"], "selector.bn_recalibrate_scope"),
     (["-m", "views=1,0"], "views=0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),
 ])

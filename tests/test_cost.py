@@ -18,7 +18,7 @@ class _Stub(nn.Module):
         super().__init__()
         self.g, self.c = nn.Linear(6, 4), nn.Linear(12, 5)
 
-    def select(self, batch):
+    def select(self, batch, refine=True):
         v = self.g(batch["points"][:, :2].flatten(1))
         return v[:, :2], v[:, 2:], torch.full_like(v[:, :2], 2.2)
 

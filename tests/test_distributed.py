@@ -129,7 +129,7 @@ def test_a_batch_too_small_for_the_processes_is_refused_naming_it(cache):
         check_world(as_config(tiny_config(cache, batch_size=3)), distributed.World(2, 0))
     with pytest.raises(ValueError, match=r"selector.hypotheses=4.*2 processes"):
         check_world(as_config(tiny_config(cache, **{"selector.name": "mvtn_poi", "selector.hypotheses": 4,
-                                                    "optim.hypothesis_epochs": 1})), distributed.World(2, 0))
+                                                    "selector.race_epochs": 1})), distributed.World(2, 0))
     check_world(as_config(tiny_config(cache, batch_size=4)), distributed.World(2, 0))
 
 

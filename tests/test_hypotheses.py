@@ -101,8 +101,8 @@ def test_split_and_join_give_each_hypothesis_its_own_row():
         split_images(torch.zeros(2, 5, 3, 4, 4), 2)
 
 
-HYP = {"selector.name": "mvtn_poi", "selector.hypotheses": 2, "optim.hypothesis_epochs": 1,
-       "optim.selector_grad": "smoothed", "optim.lr_selector": 1e-2}
+HYP = {"selector.name": "mvtn_poi", "selector.hypotheses": 2, "selector.race_epochs": 1,
+       "selector.grad": "smoothed", "selector.lr": 1e-2}
 
 
 def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
@@ -122,20 +122,20 @@ def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
     for h_a, h_b in zip(resumed["history"], full["history"], strict=True):
         assert abs(h_a["train_loss"] - h_b["train_loss"]) <= 1e-6
     # one hypothesis, the same seed: the first epoch differs (C saw the second hypothesis too)
-    plain = train(tiny(cache, epochs=1, **{"selector.name": "mvtn_poi", "optim.selector_grad": "smoothed",
-                                           "optim.lr_selector": 1e-2}), tmp_path / "plain")
+    plain = train(tiny(cache, epochs=1, **{"selector.name": "mvtn_poi", "selector.grad": "smoothed",
+                                           "selector.lr": 1e-2}), tmp_path / "plain")
     assert abs(plain["history"][0]["train_loss"] - first["train_loss"]) > 1e-6
 
 
 @pytest.mark.parametrize("overrides, needle", [
     ({"selector.name": "mvtn_poi", "selector.hypotheses": 2}, "set both"),
-    ({"selector.name": "mvtn_poi", "optim.hypothesis_epochs": 2}, "set both"),
-    ({"selector.name": "mvtn_spherical", "selector.hypotheses": 2, "optim.hypothesis_epochs": 2},
-     "for selector=mvtn_poi only, got selector=mvtn_spherical"),
-    ({**HYP, "optim.flip_explore": 0.5}, "choose one way to explore"),
+    ({"selector.name": "mvtn_poi", "selector.race_epochs": 2}, "set both"),
+    ({"selector.name": "mvtn_spherical", "selector.hypotheses": 2, "selector.race_epochs": 2},
+     "selector=mvtn_spherical has no key .hypotheses."),
+    ({**HYP, "selector.flip_explore": 0.5}, "choose one way to explore"),
     ({**HYP, "selector.hypotheses": 0}, "selector.hypotheses"),
-    ({**HYP, "optim.hypothesis_z": -1.0}, "optim.hypothesis_z"),
-    ({**HYP, "optim.hypothesis_mode": "mixed"}, "optim.hypothesis_mode"),
+    ({**HYP, "selector.race_z": -1.0}, "selector.race_z"),
+    ({**HYP, "selector.race_mode": "mixed"}, "selector.race_mode"),
 ])
 def test_bad_hypothesis_settings_are_refused(tmp_path, overrides, needle):
     with pytest.raises(ValueError, match=needle):
@@ -146,7 +146,7 @@ def test_a_clear_lead_ends_exploration_early(tmp_path):
     """hypothesis_z=0: any lead is clear, so the race ends after the first epoch, and the later
     epochs render the active hypothesis alone although hypothesis_epochs allows more."""
     cache = str(tmp_path / "cache")
-    run = train(tiny(cache, epochs=3, **{**HYP, "optim.hypothesis_epochs": 3, "optim.hypothesis_z": 0.0}),
+    run = train(tiny(cache, epochs=3, **{**HYP, "selector.race_epochs": 3, "selector.race_z": 0.0}),
                 tmp_path / "run")
     losses = [h["hypothesis_losses"] for h in run["history"]]
     assert len(losses[0]) == 2 and losses[1] is None and losses[2] is None
@@ -156,10 +156,10 @@ def test_a_clear_lead_ends_exploration_early(tmp_path):
 def test_pooled_race_scores_each_hypothesis_alone(tmp_path):
     """hypothesis_mode=pooled: C trains on all H x M views of a shape as one, and each hypothesis's
     race loss is C (eval mode) on that hypothesis's M views alone."""
-    from mvtn_exp.engine.trainer import hypothesis_losses
+    from mvtn_exp.selectors.probes import hypothesis_losses
     from mvtn_exp.model import build_mvtn
     from mvtn_exp.tasks import classification
-    cfg = as_config(tiny(str(tmp_path), **{**HYP, "optim.hypothesis_mode": "pooled"}))
+    cfg = as_config(tiny(str(tmp_path), **{**HYP, "selector.race_mode": "pooled"}))
     torch.manual_seed(0)
     model = build_mvtn(cfg, num_classes=3).train()
     B, H, M = 4, 2, cfg.views
@@ -175,7 +175,7 @@ def test_pooled_race_scores_each_hypothesis_alone(tmp_path):
 
 def test_pooled_exploring_run_trains_and_decides(tmp_path):
     cache = str(tmp_path / "cache")
-    pooled = train(tiny(cache, epochs=2, **{**HYP, "optim.hypothesis_mode": "pooled"}), tmp_path / "pooled")
+    pooled = train(tiny(cache, epochs=2, **{**HYP, "selector.race_mode": "pooled"}), tmp_path / "pooled")
     first, second = pooled["history"]
     assert len(first["hypothesis_losses"]) == 2 and second["hypothesis_losses"] is None
     assert first["hypothesis_active"] == min(range(2), key=lambda h: first["hypothesis_losses"][h])

@@ -57,7 +57,7 @@ def test_decide_turns_a_view_only_when_its_antipode_wins_beyond_the_noise():
 
 def test_exploring_run_records_polarity_and_resumes_exactly(tmp_path):
     cache = str(tmp_path / "cache")
-    kw = {"optim.flip_explore": 0.5, "optim.flip_epochs": 1}
+    kw = {"selector.flip_explore": 0.5, "selector.flip_epochs": 1}
     full = train(tiny(cache, epochs=2, **kw), tmp_path / "full")
     assert all(len(h["views_flipped"]) == 2 for h in full["history"])
     state = checkpoint.load(tmp_path / "full" / "last.pt")

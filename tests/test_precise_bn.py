@@ -52,12 +52,12 @@ def test_running_stats_are_the_plain_average_of_the_batches():
 
 
 def test_only_the_batchnorm_statistics_change_in_a_run(tmp_path):
-    """Fixed views (no G): with re-estimation the weights, the training losses and the random
+    """A frozen G (learning rate 0: the views do not move): with re-estimation the weights, the training losses and the random
     streams are bit-identical to a run without; C's running statistics are not."""
     cache = str(tmp_path / "cache")
     runs = {}
     for n in (0, 2):
-        m = train(tiny(cache, epochs=2, selector={"name": "spherical"}, **{"optim.bn_recalibrate": n}), tmp_path / str(n))
+        m = train(tiny(cache, epochs=2, selector={"name": "mvtn_spherical", "lr": 0.0}, **{"selector.bn_recalibrate": n}), tmp_path / str(n))
         runs[n] = (m, checkpoint.load(tmp_path / str(n) / "last.pt"))
     (m0, s0), (m2, s2) = runs[0], runs[2]
     assert [h["train_loss"] for h in m0["history"]] == [h["train_loss"] for h in m2["history"]]
@@ -82,7 +82,7 @@ def test_statistics_round_trip_and_refuse_foreign_layers():
         restore(model, {"mvnet.9.running_mean": torch.zeros(4)})
 
 
-SMOOTHED = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1}
+SMOOTHED = {"selector.grad": "smoothed", "selector.probe_pairs": 1}
 
 
 def test_eval_scope_leaves_a_learned_g_training_as_without(tmp_path):
@@ -92,8 +92,8 @@ def test_eval_scope_leaves_a_learned_g_training_as_without(tmp_path):
     re-estimation, while the saved model carries the re-estimated statistics."""
     cache = str(tmp_path / "cache")
     runs = {}
-    for name, extra in (("none", {}), ("all", {"optim.bn_recalibrate": 2, "optim.bn_recalibrate_scope": "all"}),
-                        ("eval", {"optim.bn_recalibrate": 2, "optim.bn_recalibrate_scope": "eval"})):
+    for name, extra in (("none", {}), ("all", {"selector.bn_recalibrate": 2, "selector.bn_recalibrate_scope": "all"}),
+                        ("eval", {"selector.bn_recalibrate": 2, "selector.bn_recalibrate_scope": "eval"})):
         m = train(tiny(cache, epochs=2, **SMOOTHED, **extra), tmp_path / name)
         runs[name] = (m, checkpoint.load(tmp_path / name / "last.pt"))
     (m0, s0), (ma, sa), (me, se) = runs["none"], runs["all"], runs["eval"]
@@ -111,7 +111,7 @@ def test_eval_scope_leaves_a_learned_g_training_as_without(tmp_path):
 
 def test_eval_scope_resumes_exactly(tmp_path):
     cache = str(tmp_path / "cache")
-    kw = {**SMOOTHED, "optim.bn_recalibrate": 2, "optim.bn_recalibrate_scope": "eval"}
+    kw = {**SMOOTHED, "selector.bn_recalibrate": 2, "selector.bn_recalibrate_scope": "eval"}
     full = train(tiny(cache, epochs=2, **kw), tmp_path / "full")
     train(tiny(cache, epochs=1, **kw), tmp_path / "a")
     resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **kw), tmp_path / "b")

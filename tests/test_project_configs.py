@@ -27,7 +27,8 @@ def user_configs(tmp_path, monkeypatch):
     (folder / "experiment").mkdir(parents=True)
     (folder / "mvnet").mkdir()
     (folder / "experiment" / "mine.yaml").write_text("# @package _global_\nviews: 3\nepochs: 5\n")
-    (folder / "mvnet" / "mvcnn.yaml").write_text("name: mvcnn\npool: mean\ndropout: 0.3\n")  # replaces the packaged one
+    (folder / "mvnet" / "mvcnn.yaml").write_text(  # replaces the packaged one
+        "defaults:\n  - /schema/mvnet/mvcnn@_here_\n  - _self_\npool: mean\ndropout: 0.3\n")
     monkeypatch.setenv("MVTN_CONFIGS", str(folder))
     return folder
 
@@ -64,3 +65,18 @@ def test_the_repositorys_example_composes_and_a_bad_key_is_one_line(tmp_path):
                         f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "viewz" in r.stderr, r.stderr[-1500:]
     assert not (tmp_path / "run").exists()
+
+
+def test_a_user_option_file_without_its_schema_is_one_line_naming_the_fix(tmp_path, monkeypatch, capsys):
+    """A file in a one-schema-per-option group must say which option it sets; if it does not, the
+    error names the defaults line to add (not Hydra's trace), exit 2."""
+    from mvtn_exp.cli.common import check_overrides
+
+    (tmp_path / "mvnet").mkdir()
+    (tmp_path / "mvnet" / "mine.yaml").write_text("name: mvcnn\npool: mean\n")
+    monkeypatch.setenv("MVTN_CONFIGS", str(tmp_path))
+    with pytest.raises(SystemExit) as e:
+        check_overrides("mvtn-train", "train", TrainConfig, ["mvnet=mine"], validate=TrainConfig.validate)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1
+    assert "mvnet.pool" in err[0] and "/schema/mvnet/NAME@_here_" in err[0] and "viewgcn" in err[0], err

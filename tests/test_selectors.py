@@ -6,7 +6,7 @@ from mvtn_exp.selectors import (SELECTORS, VARIANTS, MVTNSelector, RandomSelecto
 from mvtn_exp.selectors.mvtn import REGRESSORS, regressor_parameters
 
 FIXED = ["circular", "spherical", "random", "noisy", "optimized"]
-LEARNED = ["mvtn_direct", "mvtn_direct_offset", "mvtn_circular", "mvtn_spherical", "mvtn_poi"]
+LEARNED = ["mvtn_direct", "mvtn_direct_offset", "mvtn_circular", "mvtn_spherical", "mvtn_poi", "poi"]
 
 
 def clouds(B=3, N=32, seed=0, dtype=torch.float32):
@@ -15,8 +15,8 @@ def clouds(B=3, N=32, seed=0, dtype=torch.float32):
 
 def test_registry_names():
     assert set(SELECTORS) == set(FIXED + LEARNED)
-    allowed = ("allowed: circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, noisy, optimized, random, "
-               "spherical")
+    allowed = ("allowed: circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, noisy, optimized, poi, "
+               "random, spherical")
     with pytest.raises(ValueError, match=allowed):
         build_selector("mvtn_free", 4)
 
@@ -378,7 +378,7 @@ def test_the_constant_u0_input_is_cancelled_by_the_first_batchnorm():
 
 
 def test_poi_learned_gain_starts_at_u0_and_shrinks_the_tilt_of_u0():
-    """selector.poi_learn_gain: the gain is a parameter of G (log scale) that starts where the fixed
+    """selector.learn_gain: the gain is a parameter of G (log scale) that starts where the fixed
     gain is, so the start (u = u0) and the views for equal weights are unchanged; a larger gain
     brings each camera closer to the direction of its point of interest q, and the gain gets a
     gradient from the views."""
@@ -420,7 +420,7 @@ def test_poi_learned_gain_starts_at_u0_and_shrinks_the_tilt_of_u0():
 def test_poi_learn_gain_reaches_the_model_from_the_config():
     from mvtn_exp.engine.trainer import as_config
     from mvtn_exp.model import build_mvtn
-    model = build_mvtn(as_config({"selector": {"name": "mvtn_poi", "poi_learn_gain": True}}), num_classes=3)
+    model = build_mvtn(as_config({"selector": {"name": "mvtn_poi", "learn_gain": True}}), num_classes=3)
     assert any(p is model.selector.log_gain for p in model.parameter_groups()["selector"])
 
 
@@ -430,9 +430,9 @@ def test_selector_beta1_is_g_groups_own_and_changes_only_gs_step():
     steps = {}
     for beta1 in (0.9, 0.99):
         torch.manual_seed(0)
-        cfg = as_config({"selector": {"name": "mvtn_spherical"}, "optim": {"selector_beta1": beta1}})
+        cfg = as_config({"selector": {"name": "mvtn_spherical", "beta1": beta1}})
         model = build_mvtn(cfg, num_classes=3)
-        opt, _ = make_optimizer(cfg, model)
+        opt, _ = make_optimizer(cfg, model, cfg.selector.training()(cfg))
         betas = {g["name"]: g["betas"] for g in opt.param_groups}
         assert betas == {"mvnet": (0.9, 0.999), "selector": (beta1, 0.999)}
         groups = model.parameter_groups()

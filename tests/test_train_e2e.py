@@ -12,7 +12,8 @@ import torch
 
 from mvtn_exp.engine import train
 from mvtn_exp.engine.checkpoint import CheckpointMismatch, save_atomic
-from mvtn_exp.engine.trainer import as_config, warmup_views
+from mvtn_exp.engine.trainer import as_config
+from mvtn_exp.selectors.training import LearnedTraining
 from mvtn_exp.render import layouts
 from mvtn_exp.model import build_mvtn
 
@@ -60,7 +61,7 @@ def test_artifacts_and_metrics(full_run):
     assert m["epochs"] == 2 and len(m["epoch_seconds"]) == 2 and m["skipped_steps"] == 0
     last = torch.load(run / "last.pt", weights_only=False)
     assert last["epoch"] == 2 and last["config"]["views"] == 2  # epochs completed, as metrics.json counts
-    assert last["best_epoch"] == m["best_epoch"] and last["format"] == 2
+    assert last["best_epoch"] == m["best_epoch"] and last["format"] == 3
     assert {"model", "optimizer", "scheduler", "rng", "best_val_acc"} <= set(last)
     assert last["best_val_acc"] == m["best_val_acc"]
 
@@ -77,7 +78,7 @@ def test_selector_learns(cache, full_run):
     assert moved > 1e-6
     # control: with lr_selector=0 (and so no decay) G stays at the same initialisation
     frozen_run = run.parent / "frozen"
-    train(tiny(cache, epochs=1, **{"optim.lr_selector": 0.0}), frozen_run)
+    train(tiny(cache, epochs=1, **{"selector.lr": 0.0}), frozen_run)
     frozen = torch.load(frozen_run / "last.pt", weights_only=False)["model"]
     assert max(float((frozen[k] - init[k]).abs().max()) for k in sel) == 0.0
 
@@ -400,30 +401,30 @@ def test_learned_selector_needs_batches_of_two(cache, tmp_path):
 
 
 def test_selector_warmup_freezes_g_then_trains_it(cache, tmp_path):
-    """optim.selector_warmup_epochs: G is untouched while C warms up (on u0, random or 5 spherical
+    """selector.warmup_epochs: G is untouched while C warms up (on u0, random or 5 spherical
     views), then moves."""
     _, model = tiny_model(cache)
     init = model.state_dict()
     sel = [f"selector.{k}" for k, _ in model.selector.named_parameters()]
     for views, count in (("u0", None), ("random", None), ("spherical", 5)):
-        warm = train(tiny(cache, epochs=1, **{"optim.selector_warmup_epochs": 1, "optim.warmup_views": views,
-                                              "optim.warmup_num_views": count}), tmp_path / views)
+        warm = train(tiny(cache, epochs=1, **{"selector.warmup_epochs": 1, "selector.warmup_views": views,
+                                              "selector.warmup_num_views": count}), tmp_path / views)
         state = torch.load(tmp_path / views / "last.pt", weights_only=False)["model"]
         assert max(float((state[k] - init[k]).abs().max()) for k in sel) == 0.0, views
         assert warm["history"][0]["grad_norm_selector"] == 0.0
-    train(tiny(cache, epochs=2, **{"optim.selector_warmup_epochs": 1}), tmp_path / "after")
+    train(tiny(cache, epochs=2, **{"selector.warmup_epochs": 1}), tmp_path / "after")
     state = torch.load(tmp_path / "after" / "last.pt", weights_only=False)["model"]
     assert max(float((state[k] - init[k]).abs().max()) for k in sel) > 1e-6
 
 
 def test_warmup_views_count_and_layout(cache):
-    """The warm-up views: ``optim.warmup_num_views`` of them, the spherical layout for every shape,
+    """The warm-up views: ``selector.warmup_num_views`` of them, the spherical layout for every shape,
     or uniform random ones; u0 keeps G's own M."""
     batch = {"points": torch.zeros(3, 16, 3)}
     for kind, count, M in (("spherical", 12, 12), ("random", 7, 7), ("u0", None, 2), ("spherical", None, 2)):
-        cfg, model = tiny_model(cache, **{"optim.selector_warmup_epochs": 1, "optim.warmup_views": kind,
-                                          "optim.warmup_num_views": count})
-        azim, elev, dist = warmup_views(model, batch, cfg)
+        cfg, model = tiny_model(cache, **{"selector.warmup_epochs": 1, "selector.warmup_views": kind,
+                                          "selector.warmup_num_views": count})
+        azim, elev, dist = LearnedTraining(cfg).warmup_views(model, batch)
         assert azim.shape == elev.shape == dist.shape == (3, M), kind
         if kind == "spherical":
             ref = layouts.spherical(M, 3, cfg.selector.distance, sphere=cfg.selector.sphere)
@@ -431,9 +432,9 @@ def test_warmup_views_count_and_layout(cache):
 
 
 def test_selector_epochs_freezes_g_afterwards(cache, tmp_path):
-    """optim.selector_epochs=1: G moves in epoch 1 and not after; C keeps training."""
+    """selector.stop_epoch=1: G moves in epoch 1 and not after; C keeps training."""
     train(tiny(cache, epochs=1), tmp_path / "one")
-    train(tiny(cache, epochs=2, **{"optim.selector_epochs": 1}), tmp_path / "two")
+    train(tiny(cache, epochs=2, **{"selector.stop_epoch": 1}), tmp_path / "two")
     one, two = (torch.load(tmp_path / r / "last.pt", weights_only=False)["model"] for r in ("one", "two"))
     _, model = tiny_model(cache)
     sel = [f"selector.{k}" for k, _ in model.selector.named_parameters()]
@@ -451,7 +452,7 @@ def test_learned_views_without_camera_gradient_warn_once(cache, tmp_path, caplog
     cfg = tiny(cache, epochs=1, selector={"name": "mvtn_spherical"}, renderer=renderer)
     with caplog.at_level(logging.WARNING, logger="mvtn-train"):
         train(cfg, tmp_path / "run")
-    named = [r.getMessage() for r in caplog.records if "learned selector with" in r.getMessage()]
+    named = [r.getMessage() for r in caplog.records if "selector=mvtn_spherical with" in r.getMessage()]
     if warns is None:
         assert named == []
     else:

@@ -78,7 +78,7 @@ def test_a_smoothed_step_moves_g_and_leaves_c_and_the_rngs_as_autograd_does(tmp_
     cache = str(tmp_path / "cache")
     runs = {}
     for mode in ("autograd", "smoothed"):
-        train(tiny(cache, epochs=1, batch_size=48, **{"optim.selector_grad": mode}), tmp_path / mode)
+        train(tiny(cache, epochs=1, batch_size=48, **{"selector.grad": mode}), tmp_path / mode)
         runs[mode] = checkpoint.load(tmp_path / mode / "last.pt")
     a, s = runs["autograd"]["model"], runs["smoothed"]["model"]
     c_keys = [k for k in a if k.startswith("mvnet.")]
@@ -109,12 +109,12 @@ def test_centered_logit_is_cross_entropy_without_its_label_free_part():
 
 
 def test_selector_loss_changes_g_only(tmp_path):
-    """optim.selector_loss=centered_logit: the same step as the task loss for C (bit-identical C and
+    """selector.loss=centered_logit: the same step as the task loss for C (bit-identical C and
     RNG states), a different G."""
     cache = str(tmp_path / "cache")
     runs = {}
     for name in ("task", "centered_logit"):
-        kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1, "optim.selector_loss": name}
+        kw = {"selector.grad": "smoothed", "selector.probe_pairs": 1, "selector.loss": name}
         train(tiny(cache, epochs=1, batch_size=48, **kw), tmp_path / name)
         runs[name] = checkpoint.load(tmp_path / name / "last.pt")
     a, s = runs["task"]["model"], runs["centered_logit"]["model"]
@@ -139,10 +139,10 @@ def count_probes(monkeypatch) -> list:
 
 
 def test_smoothed_every_probes_and_steps_g_only_on_those_steps(tmp_path, monkeypatch):
-    """optim.smoothed_every=5 over 12 steps (2 epochs of 6): the estimate runs at steps 0, 5 and
+    """selector.probe_every=5 over 12 steps (2 epochs of 6): the estimate runs at steps 0, 5 and
     10, and AdamW steps G exactly there (G has no gradient in between); C steps every time."""
     calls = count_probes(monkeypatch)
-    kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1, "optim.smoothed_every": 5}
+    kw = {"selector.grad": "smoothed", "selector.probe_pairs": 1, "selector.probe_every": 5}
     m = train(tiny(str(tmp_path / "cache"), **kw), tmp_path / "run")
     assert m["steps"] == 12 and len(calls) == 3
     state = checkpoint.load(tmp_path / "run" / "last.pt")["optimizer"]
@@ -153,11 +153,11 @@ def test_smoothed_every_probes_and_steps_g_only_on_those_steps(tmp_path, monkeyp
 
 
 def test_no_probes_once_g_is_frozen(tmp_path, monkeypatch):
-    """optim.selector_epochs=1 over 2 epochs of 6 steps: the smoothed estimate runs in epoch 1 only
+    """selector.stop_epoch=1 over 2 epochs of 6 steps: the smoothed estimate runs in epoch 1 only
     (G's learning rate is 0 afterwards), G's AdamW state stops at 6 steps while C's reaches 12, and
     epoch 2 records no gradient for G."""
     calls = count_probes(monkeypatch)
-    kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1, "optim.selector_epochs": 1}
+    kw = {"selector.grad": "smoothed", "selector.probe_pairs": 1, "selector.stop_epoch": 1}
     m = train(tiny(str(tmp_path / "cache"), **kw), tmp_path / "run")
     assert m["steps"] == 12 and len(calls) == 6
     assert m["history"][0]["grad_norm_selector"] > 0 and m["history"][1]["grad_norm_selector"] == 0.0
@@ -169,7 +169,7 @@ def test_no_probes_once_g_is_frozen(tmp_path, monkeypatch):
 
 def test_smoothed_resume_is_exact(tmp_path):
     cache = str(tmp_path / "cache")
-    kw = {"optim.selector_grad": "smoothed", "optim.smoothed_pairs": 1}
+    kw = {"selector.grad": "smoothed", "selector.probe_pairs": 1}
     full = train(tiny(cache, epochs=2, **kw), tmp_path / "full")
     train(tiny(cache, epochs=1, **kw), tmp_path / "a")
     resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **kw), tmp_path / "b")

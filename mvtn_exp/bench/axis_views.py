@@ -69,7 +69,7 @@ class AxisViewsMVTN(MVTN):
     tilt: float = 0.0
     tilt_generator: torch.Generator | None = None
 
-    def select(self, batch: dict, all_hypotheses: bool = False):
+    def select(self, batch: dict, all_hypotheses: bool = False, refine: bool = True):
         if "detail_axis" not in batch:
             raise ValueError("axis views need the synthetic_views detail frame (dataset=synthetic_views)")
         axis = batch["detail_axis"]
@@ -104,8 +104,10 @@ def main(argv=None) -> None:
             raise ValueError(f"--tilt={args.tilt:g}: expected degrees in [0, 180]")
         if cfg.dataset.name != "synthetic_views":
             raise ValueError(f"dataset={cfg.dataset.name}: axis views need dataset=synthetic_views (the detail frame)")
-        if cfg.selector.learned:
-            cfg.selector.name = "spherical"  # the views come from the axis; no G to train
+        if cfg.selector.learned:  # the views come from the axis; no G to train
+            from ..selectors.fixed import SphericalConfig
+
+            cfg.selector = SphericalConfig(distance=cfg.selector.distance)
         out = Path(args.out or f"outputs/bench/axis_views/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}")
         train(cfg, out, build_model=partial(build_axis_model, tilt=args.tilt))
     except (OSError, ValueError) as e:

@@ -53,17 +53,18 @@ def _side(overrides: list[str], views: int, fixed: bool, batches_n: int, seed: i
     if not batches:
         raise ValueError(f"step_ratio: the train split has {len(ds)} shapes, fewer than batch_size={B}")
     model = build_mvtn(cfg, len(ds.classes))
-    opt, _ = make_optimizer(cfg, model)
-    # the first epoch in which G learns (after optim.selector_warmup_epochs)
-    epoch = cfg.optim.selector_warmup_epochs
-    return dict(cfg=cfg, model=model, opt=opt, batches=batches, epoch=epoch, loss_fn=classification.loss_fn(cfg.task),
+    g_training = cfg.selector.training()(cfg)
+    opt, _ = make_optimizer(cfg, model, g_training)
+    # the first epoch in which G learns (after selector.warmup_epochs)
+    epoch = getattr(cfg.selector, "warmup_epochs", 0)
+    return dict(cfg=cfg, model=model, opt=opt, g_training=g_training, batches=batches, epoch=epoch, loss_fn=classification.loss_fn(cfg.task),
                 rounds=[])
 
 
 def _run(side: dict) -> dict:
     timer = StepTimer(torch.device("cpu"))
     train_one_epoch(side["model"], side["batches"], side["opt"], side["cfg"], side["epoch"], side["loss_fn"], timer,
-                    _NoLog(), 0)
+                    _NoLog(), 0, side["g_training"])
     return timer.means()
 
 

@@ -5,14 +5,14 @@
 axis (in a random direction around it), and reports per theta: C's loss and accuracy there, and
 how well a descent step on G's views would turn the camera towards the axis, for
 
-- ``autograd``: the renderer's camera gradient dL/du (what ``optim.selector_grad=autograd`` uses),
+- ``autograd``: the renderer's camera gradient dL/du (what ``selector.grad=autograd`` uses),
 - ``smoothed``: the antithetic estimate of the smoothed loss's gradient from loss values at
-  perturbed views (``optim.selector_grad=smoothed``, ``engine/view_gradient.py``),
+  perturbed views (``selector.grad=smoothed``, ``engine/view_gradient.py``),
 
 as the mean cosine between the camera's move and the direction to the axis, and the share of
 shapes moved towards it (0.5: no information). The moves are what a step in (azimuth, elevation)
 does to the camera position, the same map for both estimates. Each row also gives the mean of G's
-other loss, the centered logit (``optim.selector_loss=centered_logit``).
+other loss, the centered logit (``selector.loss=centered_logit``).
 """
 from __future__ import annotations
 

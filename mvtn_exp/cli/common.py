@@ -56,6 +56,22 @@ def describe(exc: Exception, schema) -> tuple[str, str]:
         m = re.match(r"([A-Za-z_][\w.]*)=", first)
         key = m.group(1) if m else ""
     msg = first
+    unknown = "not in" in text or "Could not override" in first
+    if key and unknown:  # a key of another option (options.py), or one that moved (selectors/config.py)
+        from ..options import OPTIONS, load
+
+        load()
+        option = re.search(r"not in '(\w+)'", text)
+        kind, _, sub = key.partition(".")
+        name = next((n for n, c in OPTIONS.get(kind, {}).items() if option and c.__name__ == option.group(1)), None)
+        if name and sub:
+            return key, OPTIONS[kind].foreign_key_message(name, sub)
+        if kind in OPTIONS and sub and option:  # a group file that does not start from an option's schema
+            return key, (f"{key}: a {kind} file sets the keys of one option and starts from its schema: "
+                         f"defaults: [/schema/{kind}/NAME@_here_, _self_] (NAME one of "
+                         f"{', '.join(sorted(OPTIONS[kind]))}; configs/README.md)")
+        if OPTIONS["selector"].moved_message(key):
+            return key, OPTIONS["selector"].moved_message(key)
     if key and ("not in" in first or "not a valid" in first or "Could not override" in first):
         allowed = _allowed_keys(schema, key.split(".")[:-1])
         if allowed:

@@ -81,3 +81,18 @@ def build_dataset(cfg: DatasetConfig, split: str, progress: bool = True) -> Data
                             max_vertices=cfg.max_vertices, seed=cfg.seed, strict=cfg.strict,
                             as_points=cfg.shape == "points", progress=progress)
     raise ValueError(f"dataset={cfg.name!r}: expected one of synthetic, synthetic_views, {', '.join(LAYOUTS)}")
+
+
+def view_report(dataset, res: dict) -> dict:
+    """What a dataset can say about the predicted views of ``res`` (a ``classification.evaluate``
+    result on it, same order): ``dataset.view_report(res)`` where the dataset defines one
+    (``synthetic_views``: where its class detail shows), else ``{}``."""
+    report = getattr(dataset, "view_report", None)
+    return report(res) if report is not None else {}
+
+
+def view_figures(dataset, res: dict, run_dir) -> None:
+    """The dataset's own figures of the predicted views (``dataset.view_figures``), if it has any."""
+    figures = getattr(dataset, "view_figures", None)
+    if figures is not None:
+        figures(res, run_dir)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import math
 import zlib
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -220,6 +221,31 @@ class SyntheticViews(PackedShapes):
         a = self._a
         cams = camera_positions(np.asarray(azim), np.asarray(elev), np.asarray(dist))
         return detail_angles(a["detail_anchor"], a["detail_axis"], cams)
+
+    def view_report(self, res: dict) -> dict:
+        """Where the class detail shows: the share of shapes of which some predicted view sees it,
+        the accuracy on those and on the rest, the median angle of the nearest view to the cup
+        axis. ``res``: a ``classification.evaluate`` result on this split (same order)."""
+        if res["azim"].numel() == 0:
+            return {}
+        views = [res[k].double().numpy() for k in ("azim", "elev", "dist")]
+        seen = torch.from_numpy(self.detail_seen(*views).any(1))
+        right = res["pred"] == res["labels"]
+
+        def acc(mask):
+            return float(right[mask].float().mean()) if bool(mask.any()) else None
+
+        nearest = self.detail_angles(*views).min(1)
+        return {"detail_seen": float(seen.float().mean()), "acc_detail_seen": acc(seen),
+                "acc_detail_unseen": acc(~seen), "detail_angle_median": float(np.median(nearest))}
+
+    def view_figures(self, res: dict, run_dir) -> None:
+        """``detail_angles.png`` in ``run_dir``: the angles of the predicted views to the cup axis."""
+        from ..viz.views import detail_angles_png
+
+        if res["azim"].numel():
+            views = [res[k].double().numpy() for k in ("azim", "elev", "dist")]
+            detail_angles_png(self.detail_angles(*views), Path(run_dir) / "detail_angles.png")
 
 
 # ----------------------------------------------------------------------------- visibility

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..selectors import config as selector_config
+
 # config keys (dotted) whose change makes a checkpoint's weights meaningless for the new config
 MODEL_KEYS = ("views", "image_size", "selector", "point_encoder", "backbone.name", "mvnet", "dataset.name",
               "dataset.shape", "dataset.variant", "task.name")
@@ -19,8 +21,9 @@ MODEL_KEYS = ("views", "image_size", "selector", "point_encoder", "backbone.name
 NUMPY_ARRAYS = [(getattr(np, "_core", None) or np.core).multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 
 
+# 3: one schema per selector option, G's training keys in the selector (selectors/config.py: upgrade)
 # 2: "epoch" counts completed epochs and "best_epoch" is 1-based, as in metrics.json (1: both 0-based)
-FORMAT = 2
+FORMAT = 3
 
 
 class CheckpointMismatch(ValueError):
@@ -69,6 +72,9 @@ def load(path, map_location="cpu") -> dict:
     if int(payload.get("format", 1)) < 2 and "epoch" in payload:  # older files counted epochs from 0
         payload["epoch"] = int(payload["epoch"]) + 1
         payload["best_epoch"] = int(payload.get("best_epoch", -1)) + 1
+        payload["format"] = 2
+    if int(payload.get("format", 1)) < 3 and isinstance(payload["config"], dict):
+        payload["config"] = selector_config.upgrade(payload["config"])
         payload["format"] = FORMAT
     return payload
 
@@ -94,9 +100,13 @@ def _leaves(value, prefix: str) -> dict:
 def check_compatible(saved: dict, current: dict, keys=MODEL_KEYS) -> None:
     """Raise ``CheckpointMismatch`` naming every model-defining setting (dotted key) that differs."""
     diff = []
+    name = (_get(current, "selector.name") or _get(saved, "selector.name") or "")
+    free = {f"selector.{k}" for k in getattr(selector_config.REGISTRY.get(name), "training_keys", ())}
     for key in keys:
         old, new = _leaves(_get(saved, key), key), _leaves(_get(current, key), key)
         for leaf in sorted(set(old) | set(new)):
+            if leaf in free:  # how G trains, not what the model is
+                continue
             if old.get(leaf) != new.get(leaf):
                 diff.append(f"{leaf}: checkpoint={old.get(leaf)!r} vs config={new.get(leaf)!r}")
     if diff:

@@ -24,7 +24,6 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from ..bench.memory import PeakMemory
-from ..selectors.optimized import OptimizedSelector
 
 RENDERER_NOTE = ("FLOPs do not describe the renderer (face search, sorting and scattering per pixel): "
                  "its cost is render_ms_per_shape and render_pixels_per_shape")
@@ -39,17 +38,17 @@ def flops_per_shape(model, batch: dict) -> dict[str, float]:
     """Forward FLOPs per shape of G (``model.select``) and C (``model.mvnet``) on ``batch``, eval mode.
 
     ``selector=optimized``: G counts its starting layout only (no FLOPs); its per-batch steps
-    (``opt_steps`` renders with C forward and backward) show in the run's seconds, not here."""
+    (``selector.steps`` renders with C forward and backward) show in the run's seconds, not here."""
     B = len(batch["labels"])
     was = model.training
     model.eval()
-    optimized = isinstance(getattr(model, "selector", None), OptimizedSelector)
     try:
+        # G with autograd on: under no_grad a view of a parameter (``p.expand(B, M)``) requires grad
+        # without a grad_fn, which FlopCounterMode's module hooks refuse
+        with FlopCounterMode(display=False) as g_count:
+            model.select(batch, refine=False)
         with torch.no_grad():
-            with FlopCounterMode(display=False) as g_count:
-                views = model.selector(batch["points"].to(model.device)) if optimized else model.select(batch)
-            if optimized:
-                views = model.select(batch)
+            views = tuple(v.detach() for v in model.select(batch))
             images = model.render(batch, *views)
             with FlopCounterMode(display=False) as c_count:
                 model.mvnet(images, views)

@@ -21,18 +21,15 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from ..data.datasets import build_dataset
+from ..data.datasets import build_dataset, view_figures
+from ..data.datasets import view_report as dataset_view_report
 from ..model import MVTN, build_mvtn
 from ..models.precision import grad_scaler
-from ..render import layouts
-from ..schema import TrainConfig
-from ..selectors.fixed import random_directions
-from ..selectors.hypotheses import join_views, split_images, split_views
+from ..schema import TrainConfig, typed_train_config
 from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
-from ..viz.views import detail_angles_png
-from . import checkpoint, cost, distributed, loaders, precise_bn, seeding, view_gradient
+from . import checkpoint, cost, distributed, loaders, precise_bn, seeding
 from .loaders import eval_loader, train_loader
 from .ema import ModelEMA
 from .view_stats import view_stats
@@ -52,12 +49,7 @@ class TrainingDiverged(RuntimeError):
 def as_config(cfg) -> TrainConfig:
     """TrainConfig | DictConfig | dict -> a validated TrainConfig (type-checked against the schema,
     interpolations resolved)."""
-    base = OmegaConf.structured(TrainConfig)
-    if isinstance(cfg, TrainConfig):
-        node = OmegaConf.merge(base, OmegaConf.structured(cfg))
-    else:
-        node = OmegaConf.merge(base, cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg))
-    obj: TrainConfig = OmegaConf.to_object(node)
+    obj: TrainConfig = OmegaConf.to_object(typed_train_config(cfg))
     return obj.validate()
 
 
@@ -109,24 +101,10 @@ def evaluate_split(model, dataset, cfg: TrainConfig, num_classes: int, desc: str
     return out
 
 
-def stage_span(cfg: TrainConfig, epoch: int) -> tuple[int, int]:
-    """``(first epoch, epochs)`` of the training stage holding ``epoch`` (0-based): the whole run,
-    or with ``mvnet.stages=[S1, S2]`` (ViewGCN) the single-view stage or the whole-network stage."""
-    stages = cfg.mvnet.stages
-    if stages is None:
-        return 0, cfg.epochs
-    return (0, stages[0]) if epoch < stages[0] else (stages[0], cfg.epochs - stages[0])
-
-
-def single_view_stage(cfg: TrainConfig, epoch: int) -> bool:
-    """Whether ``epoch`` (0-based) is ViewGCN's stage 1 (views classified one at a time, G frozen)."""
-    return cfg.mvnet.stages is not None and epoch < cfg.mvnet.stages[0]
-
-
 def lr_factor(cfg: TrainConfig, epoch: int) -> float:
     """Multiplier of the base learning rates during ``epoch`` (0-based); the schedule runs over the
-    epoch's training stage (``stage_span``: the whole run unless ``mvnet.stages`` is set)."""
-    first, length = stage_span(cfg, epoch)
+    epoch's training stage (``cfg.mvnet.stage_span``: the whole run unless the net has stages)."""
+    first, length = cfg.mvnet.stage_span(epoch, cfg.epochs)
     e = epoch - first
     if cfg.optim.schedule == "cosine":
         return 0.5 * (1.0 + math.cos(math.pi * e / length))
@@ -134,20 +112,17 @@ def lr_factor(cfg: TrainConfig, epoch: int) -> float:
 
 
 def group_factor(cfg: TrainConfig, name: str, epoch: int) -> float:
-    """``lr_factor`` for parameter group ``name`` ("mvnet" | "selector"): G's is 0 from epoch
-    ``optim.selector_epochs`` on (G frozen, C goes on training on G's views)."""
-    stop = cfg.optim.selector_epochs
-    if name == "selector" and stop is not None and epoch >= stop:
-        return 0.0
-    return lr_factor(cfg, epoch)
+    """``lr_factor`` for parameter group ``name`` ("mvnet" | "selector"), G's scaled by the
+    selector's own ``lr_scale`` (0 from ``selector.stop_epoch`` on: G frozen, C trains on)."""
+    return lr_factor(cfg, epoch) * (cfg.selector.lr_scale(epoch) if name == "selector" else 1.0)
 
 
-def make_optimizer(cfg: TrainConfig, model: MVTN):
+def make_optimizer(cfg: TrainConfig, model: MVTN, g_training):
+    """AdamW over C's group and, if G has parameters, G's group (``g_training.param_group``)."""
     groups = model.parameter_groups()
     params = [{"params": groups["mvnet"], "lr": cfg.optim.lr, "name": "mvnet"}]
     if groups["selector"]:
-        params.append({"params": groups["selector"], "lr": cfg.optim.lr_selector, "name": "selector",
-                       "betas": (cfg.optim.selector_beta1, 0.999)})
+        params.append(g_training.param_group(groups["selector"]))
     opt = torch.optim.AdamW(params, lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, [lambda e, n=g["name"]: group_factor(cfg, n, e) for g in params])
@@ -173,7 +148,8 @@ def view_offsets(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
     init = getattr(model.selector, "initial_views", None)
     if init is None or azim.numel() == 0:
         return {"view_offset_azim": 0.0, "view_offset_elev": 0.0}
-    a0, e0, _ = init(1)
+    with torch.no_grad():
+        a0, e0 = (t.detach() for t in init(1)[:2])
     d_azim = torch.remainder(azim - a0.cpu() + 180.0, 360.0) - 180.0  # the same camera 360 deg apart
     return {"view_offset_azim": float(d_azim.abs().mean()),
             "view_offset_elev": float((elev - e0.cpu()).abs().mean())}
@@ -182,67 +158,6 @@ def view_offsets(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
 def view_report(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
     """``view_offsets`` and ``view_stats`` (spread over shapes, separation within a shape) of views ``[N, M]``."""
     return {**view_offsets(model, azim, elev), **view_stats(azim, elev)}
-
-
-def warmup_views(model: MVTN, batch: dict, cfg: TrainConfig):
-    """Views of a warm-up step (G frozen), each ``[B, optim.warmup_num_views or views]``: G's initial
-    views u0, new uniform random views per shape, or the fixed spherical layout."""
-    B, M = batch["points"].shape[0], cfg.optim.warmup_num_views or cfg.views
-    if cfg.optim.warmup_views == "random":
-        azim, elev = random_directions((B, M))
-        azim, elev = azim.float().to(model.device), elev.float().to(model.device)
-        return azim, elev, torch.full_like(azim, cfg.selector.distance)
-    if cfg.optim.warmup_views == "spherical":
-        return layouts.spherical(M, B, cfg.selector.distance, device=model.device, sphere=cfg.selector.sphere)
-    return tuple(t.to(model.device) for t in model.selector.initial_views(B))
-
-
-def detail_report(dataset, res: dict) -> dict:
-    """For datasets that know where their class detail shows (``synthetic_views``): the share of
-    shapes of which some predicted view sees it, and the accuracy on those and on the rest; ``{}``
-    for other datasets. ``res``: a ``classification.evaluate`` result on ``dataset`` (same order)."""
-    if not hasattr(dataset, "detail_seen") or res["azim"].numel() == 0:
-        return {}
-    seen = torch.from_numpy(dataset.detail_seen(res["azim"].double().numpy(), res["elev"].double().numpy(),
-                                                res["dist"].double().numpy()).any(1))
-    right = res["pred"] == res["labels"]
-
-    def acc(mask):
-        return float(right[mask].float().mean()) if bool(mask.any()) else None
-
-    nearest = dataset.detail_angles(res["azim"].double().numpy(), res["elev"].double().numpy(),
-                                    res["dist"].double().numpy()).min(1)
-    return {"detail_seen": float(seen.float().mean()), "acc_detail_seen": acc(seen), "acc_detail_unseen": acc(~seen),
-            "detail_angle_median": float(np.median(nearest))}
-
-
-def exploring_flips(model: MVTN, cfg: TrainConfig, epoch: int) -> bool:
-    """Whether training epoch ``epoch`` (0-based) renders some views from their antipodes."""
-    return (model.polarity is not None and epoch < cfg.optim.flip_epochs
-            and epoch >= cfg.optim.selector_warmup_epochs)
-
-
-def exploring_hypotheses(model: MVTN, cfg: TrainConfig, epoch: int) -> bool:
-    """Whether training epoch ``epoch`` (0-based) renders all of G's hypotheses (selectors/hypotheses.py)."""
-    return (model.hypotheses is not None and not bool(model.hypotheses.done) and epoch < cfg.optim.hypothesis_epochs
-            and epoch >= cfg.optim.selector_warmup_epochs)
-
-
-def hypothesis_losses(model: MVTN, logits: torch.Tensor, images: torch.Tensor, labels: torch.Tensor, H: int, S: int,
-                      selector_loss) -> torch.Tensor:
-    """Each shape's G loss under each of the H hypotheses, ``[B, H]``. Separate (S = H): read off
-    the training logits ``[B * H, classes]``; pooled (S = 1): C in eval mode, without gradients, on
-    each hypothesis's M views alone (``images [B, H * M, 3, h, w]``)."""
-    if S == H:
-        return selector_loss(logits.detach(), labels).reshape(-1, H)
-    with torch.no_grad(), view_gradient.eval_mode(model.mvnet):
-        alone, _ = model.mvnet(split_images(images.detach(), H))
-    return selector_loss(alone, labels.repeat_interleave(H)).reshape(-1, H)
-
-
-def flip_generator(seed: int, step: int) -> torch.Generator:
-    """The flip draws' own generator for global step ``step`` (a stream apart from the smoothed noise)."""
-    return view_gradient.noise_generator(int(seed) + 7_919, step)
 
 
 def augment(batch: dict, cfg: TrainConfig) -> dict:
@@ -269,6 +184,16 @@ class _Epoch:
         self.loss, self.correct, self.seen, self.skipped, self.clipped = 0.0, 0, 0, 0, 0
         self.g_norm_sum, self.c_norm_sum, self.steps = 0.0, 0.0, 0
 
+    def add(self, loss, logits, labels, g_norm: float, c_norm: float) -> None:
+        """One finished step: C's mean ``loss`` over ``labels [B']`` and the gradient norms."""
+        n = len(labels)
+        self.loss += float(loss.detach()) * n
+        self.correct += int((logits.detach().argmax(1) == labels).sum())
+        self.seen += n
+        self.steps += 1
+        self.g_norm_sum += g_norm
+        self.c_norm_sum += c_norm
+
     def result(self) -> dict:
         n, s = max(self.seen, 1), max(self.steps, 1)
         return {"loss": self.loss / n, "acc": self.correct / n, "seen": self.seen, "skipped": self.skipped, "clipped": self.clipped,
@@ -276,28 +201,18 @@ class _Epoch:
 
 
 def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss_fn, timer: StepTimer,
-                    logger: RunLogger, step: int, scaler=None, ema=None,
+                    logger: RunLogger, step: int, g_training, scaler=None, ema=None,
                     world: distributed.World = distributed.World()) -> tuple[dict, int]:
-    """One pass over ``loader``; returns (epoch sums, global step after it). ``scaler``: fp16's
-    loss scaler (``models/precision.py``); ``ema``: a ``ModelEMA`` updated after every step."""
+    """One pass over ``loader``; returns (epoch sums, global step after it). ``g_training``: how G
+    trains (``selectors/training.py``: its ``train_step`` is the forward and the objective);
+    ``scaler``: fp16's loss scaler (``models/precision.py``); ``ema``: a ``ModelEMA`` updated after
+    every step."""
     model.train()
     groups = model.parameter_groups()
     all_params = groups["mvnet"] + groups["selector"]
+    g_training.start_epoch(model, epoch, selector_lr(opt), hold_views=cfg.mvnet.holds_views(epoch))
     acc = _Epoch()
-    # G frozen, C alone: G's warm-up, and ViewGCN's single-view stage (on G's initial views)
-    warm = bool(groups["selector"]) and (epoch < cfg.optim.selector_warmup_epochs or single_view_stage(cfg, epoch))
-    # G's learning rate is 0 (optim.selector_epochs reached, or lr_selector=0): C trains on G's
-    # views, and neither G's gradient nor the smoothed probes are computed (G's weights are the same)
-    frozen = bool(groups["selector"]) and not warm and selector_lr(opt) == 0.0
-    learning = bool(groups["selector"]) and not warm and not frozen
-    smoothed = learning and cfg.optim.selector_grad == "smoothed"
-    flips = model.polarity if exploring_flips(model, cfg, epoch) else None
-    # H > 1: all of G's hypotheses are rendered; C classifies each as a shape of its own (S = H:
-    # hypothesis_mode=separate) or all H x M views of a shape pooled as one (S = 1: pooled)
-    H = model.hypotheses.hypotheses if exploring_hypotheses(model, cfg, epoch) else 1
-    S = H if cfg.optim.hypothesis_mode == "separate" else 1
-    per_shape_loss = classification.loss_fn(cfg.task, reduction="none")
-    selector_loss = classification.selector_loss_fn(cfg.optim.selector_loss, cfg.task)
+    scaling = scaler is not None and scaler.is_enabled()
     bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=None if cfg.logger.progress else True)
     it = iter(bar)
     while True:
@@ -307,43 +222,18 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
                 batch = augment(batch, cfg)
         if batch is None:
             break
-        labels = batch["labels"].to(model.device).repeat_interleave(S)  # [B * S]
-        with timer.stage("selector"), torch.set_grad_enabled(not frozen):
-            views = warmup_views(model, batch, cfg) if warm else model.select(batch, all_hypotheses=H > 1)
-            if flips is not None:  # some views from their antipodes (selectors/polarity.py)
-                views, flip_mask = flips.explore(views, cfg.optim.flip_explore, flip_generator(cfg.seed, step))
-        with timer.stage("render"), torch.set_grad_enabled(not smoothed):
-            images = model.render(batch, *views)  # smoothed: R is not differentiated
-            if S > 1:
-                images = split_images(images, S)  # [B * H, M, 3, h, w]
-        with timer.stage("backbone"):
-            logits, _ = model.classify(images, views if S == 1 else split_views(views, S))
-            loss = model.mvnet.training_loss(logits, labels, loss_fn)
+        out = g_training.train_step(model, batch, step, loss_fn, timer)
+        loss = out.loss
         if not bool(torch.isfinite(loss.detach())):
             raise TrainingDiverged(f"epoch {epoch + 1}, step {step + 1}: non-finite loss {float(loss.detach())} "
                                    f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
-        if flips is not None:
-            flips.record(per_shape_loss(logits.detach(), labels), flip_mask)
-        if H > 1:  # each shape's loss under each hypothesis: G's own loss (selectors/hypotheses.py)
-            with timer.stage("selector"):
-                model.hypotheses.record(hypothesis_losses(model, logits, images, labels, H, S, selector_loss))
-        objective = loss
-        if smoothed and step % cfg.optim.smoothed_every == 0:  # G's gradient from the loss at perturbed views
-            # (view_gradient.py), charged to G; on the other steps G gets no gradient and AdamW leaves it
-            with timer.stage("selector"):
-                g = view_gradient.smoothed_view_gradient(
-                    view_gradient.model_render_loss(model, batch, labels, selector_loss, hypotheses=S),
-                    split_views(views, S) if S > 1 else views,
-                    cfg.optim.smoothed_pairs, cfg.optim.smoothed_sigma, view_gradient.noise_generator(cfg.seed, step))
-                objective = loss + view_gradient.surrogate(views, *(join_views(g, S) if S > 1 else g))
         with timer.stage("optimizer"):
             opt.zero_grad(set_to_none=True)
-        scaling = scaler is not None and scaler.is_enabled()
-        timer.backward(scaler.scale(objective) if scaling else objective, views, images)
+        timer.backward(scaler.scale(out.objective) if scaling else out.objective, out.views, out.images)
         with timer.stage("optimizer"):
             if world.enabled:  # every rank's gradient of its share -> the whole batch's, on every rank
-                n_all = float(distributed.all_sum(torch.tensor(float(len(labels)), device=model.device), world))
-                distributed.average_gradients(all_params, len(labels) / n_all, world)
+                n_all = float(distributed.all_sum(torch.tensor(float(len(out.labels)), device=model.device), world))
+                distributed.average_gradients(all_params, len(out.labels) / n_all, world)
             if scaling:
                 scaler.unscale_(opt)
             if not _grads_finite(all_params):
@@ -359,8 +249,8 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
             c_norm = _grad_norm(groups["mvnet"])
             g_norm = 0.0
             if groups["selector"]:
-                g_norm = float(torch.nn.utils.clip_grad_norm_(groups["selector"], cfg.optim.clip_selector))
-                acc.clipped += int(g_norm > cfg.optim.clip_selector)
+                g_norm = float(torch.nn.utils.clip_grad_norm_(groups["selector"], g_training.clip))
+                acc.clipped += int(g_norm > g_training.clip)
             if scaling:
                 scaler.step(opt)
                 scaler.update()
@@ -369,13 +259,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
             if ema is not None:
                 ema.update(model, step)
         timer.step_done()
-        n = len(labels)
-        acc.loss += float(loss.detach()) * n
-        acc.correct += int((logits.detach().argmax(1) == labels).sum())
-        acc.seen += n
-        acc.steps += 1
-        acc.g_norm_sum += g_norm
-        acc.c_norm_sum += c_norm
+        acc.add(loss, out.logits, out.labels, g_norm, c_norm)
         step += 1
         if step % cfg.logger.log_every == 0:
             logger.scalars({"train/loss": float(loss.detach()), "grad_norm/selector": g_norm,
@@ -390,10 +274,11 @@ def check_world(cfg: TrainConfig, world: distributed.World) -> None:
     if cfg.batch_size < 2 * world.size:
         raise ValueError(f"batch_size={cfg.batch_size} with {world.size} processes (WORLD_SIZE): batch_size is the global "
                          f"batch and every process needs at least 2 shapes of it; use batch_size >= {2 * world.size}")
-    if cfg.selector.hypotheses > 1 or cfg.optim.flip_explore > 0:
-        raise ValueError(f"selector.hypotheses={cfg.selector.hypotheses} / optim.flip_explore={cfg.optim.flip_explore} "
-                         f"with {world.size} processes: their per-shape statistics are not shared between processes "
-                         "yet; run them in one process")
+    extra = cfg.selector.modules(cfg.views)  # per-shape statistics of G's training (hypotheses, polarity)
+    if extra:
+        key = "hypotheses" if "hypotheses" in extra else "flip_explore"
+        raise ValueError(f"selector.{key}={getattr(cfg.selector, key)} with {world.size} processes: selector={cfg.selector.name}'s per-shape statistics "
+                         f"({', '.join(extra)}) are not shared between processes yet; run it in one process")
 
 
 def check_split_sizes(datasets: dict, world: distributed.World) -> None:
@@ -413,7 +298,13 @@ def all_ranks_epoch(tr: dict, world: distributed.World, device) -> dict:
     return {**tr, "loss": sums[0] / n, "acc": sums[1] / n, "seen": int(sums[2])}
 
 
-def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, scaler, ema) -> None:
+def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, scaler, ema, classes: list,
+            world: distributed.World) -> tuple:
+    """Load ``state`` (a last.pt) into the run; returns ``(start epoch, best val acc, best epoch
+    (0-based), skipped steps, history, global step)``."""
+    if list(state.get("classes", classes)) != classes:
+        raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
+                                            f"{state['classes']} but the dataset has {classes}")
     model.load_state_dict(state["model"])
     if "scaler" in state:
         scaler.load_state_dict(state["scaler"])
@@ -437,6 +328,12 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, sca
             and src_best.resolve() != (run_dir / "best.pt").resolve()):
         shutil.copyfile(src_best, run_dir / "best.pt")
     say(run_dir, f"resumed from {cfg.ckpt_path} at epoch {start + 1}/{cfg.epochs}")
+    distributed.barrier(world)  # rank 0 has copied best.pt beside the run
+    best_acc, best_epoch = float(state["best_val_acc"]), int(state["best_epoch"]) - 1
+    if not (run_dir / "best.pt").is_file():  # best.pt did not travel with last.pt: select anew
+        log.warning("no best.pt beside %s: model selection starts again from the resumed epoch", cfg.ckpt_path)
+        best_acc, best_epoch = -1.0, -1
+    return start, best_acc, best_epoch, int(state["skipped_steps"]), list(state["history"]), int(state.get("step", 0))
 
 
 def write_results(run_dir: Path, metrics: dict) -> Path:
@@ -452,13 +349,43 @@ def write_results(run_dir: Path, metrics: dict) -> Path:
 
 
 # ----------------------------------------------------------------------------- the loop
-def train(cfg, run_dir, build_model=None) -> dict:
-    """Train MVTN per ``cfg`` (TrainConfig / dict / DictConfig) writing into ``run_dir``; return the metrics.
-    ``build_model(cfg, num_classes)``: the model factory (default ``build_mvtn``; diagnostics such as
-    ``bench.axis_views`` pass their own)."""
-    cfg = as_config(cfg)
-    run_dir = Path(run_dir)
-    world = distributed.from_env()  # torchrun: several processes, one run (engine/distributed.py)
+def epoch_record(epoch: int, tr: dict, val: dict, val_ema, offsets: dict, detail: dict, lrs: dict, seconds: float,
+                 extra: dict) -> dict:
+    """One epoch's entry of ``history`` (metrics.json and the checkpoints)."""
+    return {"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
+            "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
+            "skipped": tr["skipped"], "clipped": tr["clipped"],
+            "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
+            **offsets, **detail, **lrs, "seconds": seconds,
+            **({"val_acc_ema": val_ema["acc"]} if val_ema is not None else {}), **extra}
+
+
+def log_epoch(logger: RunLogger, step: int, tr: dict, val: dict, offsets: dict, detail: dict) -> None:
+    """The epoch's scalars, view histograms and view grid in TensorBoard."""
+    logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
+                    "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
+                    "views/offset_azim": offsets["view_offset_azim"], "views/offset_elev": offsets["view_offset_elev"],
+                    "views/spread": offsets["view_spread"],
+                    **({"views/separation": offsets["view_separation"]} if offsets["view_separation"] is not None else {}),
+                    **({"views/detail_seen": detail["val_detail_seen"]} if "val_detail_seen" in detail else {})}, step)
+    logger.histogram("views/azim", val["azim"], step)
+    logger.histogram("views/elev", val["elev"], step)
+    if val["images"] is not None:
+        logger.views("views/val", val["images"], step)
+
+
+def epoch_line(epoch: int, cfg: TrainConfig, tr: dict, val: dict, val_ema, improved: bool, use_ema: bool,
+               offsets: dict, detail: dict, seconds: float) -> str:
+    return (f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | val acc {val['acc']:.3f}"
+            + (f" average {val_ema['acc']:.3f}" if val_ema is not None else "")
+            + f"{' (best' + (': the average)' if use_ema else ')') if improved else ''} | "
+            f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
+            + (f"detail seen {detail['val_detail_seen']:.2f} | " if "val_detail_seen" in detail else "") + f"{seconds:.1f}s")
+
+
+def prepare_run(cfg: TrainConfig, run_dir: Path, world: distributed.World):
+    """The device, the run's provenance record, and a warning for a learned G on a renderer
+    without a useful camera gradient."""
     if world.enabled:
         check_world(cfg, world)
     device = torch.device(distributed.init(world, cfg.device))
@@ -466,17 +393,40 @@ def train(cfg, run_dir, build_model=None) -> dict:
         run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
-    cfg_dict = config_dict(cfg)
     origin = {**provenance(str(device)), "world_size": world.size}
     if world.main:
         (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
-    steps_on_views = cfg.selector.name == "optimized" and cfg.selector.opt_steps > 0
     problem = (cfg.renderer.camera_gradient_problem()
-               if ((cfg.selector.learned and not cfg.selector.from_ckpt and cfg.optim.selector_grad == "autograd")
-                   or steps_on_views) and cfg.dataset.shape == "mesh" else None)
+               if cfg.selector.uses_camera_gradient() and cfg.dataset.shape == "mesh" else None)
     if problem:
-        log.warning("%s with %s", "selector=optimized" if steps_on_views else "learned selector", problem)
+        log.warning("selector=%s with %s", cfg.selector.name, problem)
+    return device, origin
 
+
+def test_best(model, cfg: TrainConfig, run_dir: Path, datasets: dict, classes: list, world, device, timer, costs_in):
+    """``best.pt`` on the test split (read once), with the run's cost record (``engine/cost.py``)."""
+    best = checkpoint.load(run_dir / "best.pt", map_location=device)
+    model.load_state_dict(best["model"])
+    with cost.peak_memory(device) as infer_memory:
+        t_test = time.perf_counter()
+        test = evaluate_split(model, datasets["test"], cfg, len(classes), "test", world)
+        infer_seconds = time.perf_counter() - t_test
+    first = next(iter(eval_loader(cfg, datasets["test"])), None)
+    costs = cost.run_cost(model, cfg, infer_seconds=infer_seconds, infer_shapes=test["n"], infer_memory=infer_memory,
+                          render_seconds=timer.seconds["render"],
+                          flops=cost.flops_per_shape(model, first) if first is not None else {}, **costs_in)
+    return best, test, costs
+
+
+def train(cfg, run_dir, build_model=None) -> dict:
+    """Train MVTN per ``cfg`` (TrainConfig / dict / DictConfig) writing into ``run_dir``; return the metrics.
+    ``build_model(cfg, num_classes)``: the model factory (default ``build_mvtn``; diagnostics such as
+    ``scripts/studies`` pass their own)."""
+    cfg = as_config(cfg)
+    run_dir = Path(run_dir)
+    world = distributed.from_env()  # torchrun: several processes, one run (engine/distributed.py)
+    device, origin = prepare_run(cfg, run_dir, world)
+    cfg_dict = config_dict(cfg)
     resume = None
     if cfg.ckpt_path:
         resume = checkpoint.load(cfg.ckpt_path)
@@ -487,14 +437,14 @@ def train(cfg, run_dir, build_model=None) -> dict:
     classes = list(datasets["train"].classes)
     if world.enabled:
         check_split_sizes(datasets, world)
-    eval_loaders = {s: eval_loader(cfg, datasets[s]) for s in ("val", "test")}
     model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
-    if cfg.selector.from_ckpt:  # view transfer: G from another run, frozen (a resumed run has it in its own state)
-        if resume is None:
+    if cfg.selector.learned and cfg.selector.from_ckpt:  # view transfer: G from another run, frozen
+        if resume is None:  # (a resumed run has it in its own state)
             view_transfer.load_frozen_selector(model, cfg_dict, cfg.selector.from_ckpt)
         else:
             view_transfer.freeze_selector(model)
-    opt, sched = make_optimizer(cfg, model)
+    g_training = cfg.selector.training()(cfg)  # how G trains (selectors/training.py)
+    opt, sched = make_optimizer(cfg, model, g_training)
     scaler = grad_scaler(cfg.precision, device)
     ema = ModelEMA(model, cfg.optim.ema_decay) if cfg.optim.ema_decay is not None else None
     loss_fn = classification.loss_fn(cfg.task)
@@ -502,17 +452,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
     start, best_acc, best_epoch, skipped, history, step = 0, -1.0, -1, 0, [], 0
     train_seconds, train_shapes = 0.0, 0  # this process's training passes (engine/cost.py)
     if resume is not None:
-        if list(resume.get("classes", classes)) != classes:
-            raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
-                                                f"{resume['classes']} but the dataset has {classes}")
-        _resume(cfg, run_dir, model, opt, sched, resume, scaler, ema)
-        distributed.barrier(world)  # rank 0 has copied best.pt beside the run
-        start = int(resume["epoch"])
-        best_acc, best_epoch = float(resume["best_val_acc"]), int(resume["best_epoch"]) - 1
-        if not (run_dir / "best.pt").is_file():  # best.pt did not travel with last.pt: select anew
-            log.warning("no best.pt beside %s: model selection starts again from the resumed epoch", cfg.ckpt_path)
-            best_acc, best_epoch = -1.0, -1
-        skipped, history, step = int(resume["skipped_steps"]), list(resume["history"]), int(resume.get("step", 0))
+        start, best_acc, best_epoch, skipped, history, step = _resume(cfg, run_dir, model, opt, sched, resume, scaler,
+                                                                      ema, classes, world)
 
     def payload(epoch):
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
@@ -528,41 +469,21 @@ def train(cfg, run_dir, build_model=None) -> dict:
         with cost.peak_memory(device) as train_memory:
             for epoch in range(start, cfg.epochs):
                 t0 = time.perf_counter()
-                if cfg.mvnet.stages is not None:  # ViewGCN: single views first, then the whole network
-                    model.mvnet.stage.fill_(1 if single_view_stage(cfg, epoch) else 2)
-                    if epoch == cfg.mvnet.stages[0]:
-                        best_acc, best_epoch = -1.0, -1
-                        say(run_dir, f"epoch {epoch + 1}: ViewGCN stage 2 (the whole network); model selection "
-                                     "counts from here")
+                restart = cfg.mvnet.start_epoch(model.mvnet, epoch)  # ViewGCN: single views first, then the whole net
+                if restart:
+                    best_acc, best_epoch = -1.0, -1
+                    say(run_dir, restart)
                 lrs = {f"lr_{g['name']}": g["lr"] for g in opt.param_groups}
                 tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch, world), opt, cfg, epoch,
-                                           loss_fn, timer, logger, step, scaler=scaler, ema=ema, world=world)
+                                           loss_fn, timer, logger, step, g_training, scaler=scaler, ema=ema, world=world)
                 train_seconds += time.perf_counter() - t0
                 if world.enabled:  # the epoch's sums over every rank's share
                     tr = all_ranks_epoch(tr, world, model.device)
                 train_shapes += tr["seen"]
                 skipped += tr["skipped"]
-                if exploring_flips(model, cfg, epoch):
-                    turned = model.polarity.decide()
-                    if turned:
-                        say(run_dir, f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
-                hypothesis_losses = None
-                if exploring_hypotheses(model, cfg, epoch):
-                    active, hypothesis_losses, clear = model.hypotheses.decide(cfg.optim.hypothesis_z)
-                    if active is not None:
-                        model.selector.active.fill_(active)
-                    last = epoch + 1 == cfg.optim.hypothesis_epochs
-                    if clear or last:
-                        model.hypotheses.finish()
-                    say(run_dir, f"epoch {epoch + 1}: hypotheses' mean {cfg.optim.selector_loss} loss "
-                                 f"{' / '.join(f'{x:.4f}' for x in hypothesis_losses)}: hypothesis {active} active"
-                                 + (" (a clear lead: kept from now on)" if clear else " (kept from now on)" if last else ""))
-                train_bn = None  # bn_recalibrate_scope=eval: training's own statistics, put back after saving
-                if cfg.optim.bn_recalibrate:
-                    if cfg.optim.bn_recalibrate_scope == "eval":
-                        train_bn = precise_bn.running_statistics(model)
-                    precise_bn.recalibrate(model, train_loader(cfg, datasets["train"], epoch, world),
-                                           cfg.optim.bn_recalibrate)
+                for line in g_training.end_epoch(model, epoch):
+                    say(run_dir, line)
+                train_bn = g_training.before_validation(model, lambda: train_loader(cfg, datasets["train"], epoch, world))
                 distributed.broadcast_buffers(model, world)  # rank 0's BatchNorm statistics everywhere
                 if ema is not None:
                     distributed.broadcast_buffers(ema.model, world)
@@ -572,49 +493,23 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 sched.step()
                 seconds = time.perf_counter() - t0
                 offsets = view_report(model, val["azim"], val["elev"])
-                detail = {f"val_{k}": v for k, v in detail_report(datasets["val"], val).items()}
-                history.append({"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
-                                "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
-                                "skipped": tr["skipped"], "clipped": tr["clipped"],
-                                "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
-                                **offsets, **detail, **lrs, "seconds": seconds,
-                                **({"val_acc_ema": val_ema["acc"]} if val_ema is not None else {}),
-                                **({"views_flipped": model.polarity.flipped.tolist()} if model.polarity is not None else {}),
-                                **({"hypothesis_active": int(model.selector.active), "hypothesis_losses": hypothesis_losses}
-                                   if model.hypotheses is not None else {})})
-                logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
-                                "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
-                                "views/offset_azim": offsets["view_offset_azim"],
-                                "views/offset_elev": offsets["view_offset_elev"],
-                                "views/spread": offsets["view_spread"],
-                                **({"views/separation": offsets["view_separation"]}
-                                   if offsets["view_separation"] is not None else {}),
-                                **({"views/detail_seen": detail["val_detail_seen"]} if detail else {})}, step)
-                logger.histogram("views/azim", val["azim"], step)
-                logger.histogram("views/elev", val["elev"], step)
-                if val["images"] is not None:
-                    logger.views("views/val", val["images"], step)
+                detail = {f"val_{k}": v for k, v in dataset_view_report(datasets["val"], val).items()}
+                history.append(epoch_record(epoch, tr, val, val_ema, offsets, detail, lrs, seconds,
+                                            g_training.history(model)))
+                log_epoch(logger, step, tr, val, offsets, detail)
                 use_ema = val_ema is not None and val_ema["acc"] > val["acc"]  # the average is the better model now
                 score = val_ema["acc"] if use_ema else val["acc"]
                 improved = score > best_acc
                 if improved:
                     best_acc, best_epoch = score, epoch
-                state = payload(epoch)
-                if train_bn is not None:
-                    state["train_bn"] = train_bn
+                state = {**payload(epoch), **({"train_bn": train_bn} if train_bn is not None else {})}
                 if improved and world.main:
                     checkpoint.save_atomic(run_dir / "best.pt", {**state, "model": ema.state_dict(), "ema_selected": True}
                                            if use_ema else state)
                 if world.main:
                     checkpoint.save_atomic(run_dir / "last.pt", state)
-                if train_bn is not None:
-                    precise_bn.restore(model, train_bn)
-                say(run_dir, f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | "
-                      f"val acc {val['acc']:.3f}"
-                      + (f" average {val_ema['acc']:.3f}" if val_ema is not None else "")
-                      + f"{' (best' + (': the average)' if use_ema else ')') if improved else ''} | "
-                      f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
-                      + (f"detail seen {detail['val_detail_seen']:.2f} | " if detail else "") + f"{seconds:.1f}s")
+                g_training.after_validation(model, train_bn)
+                say(run_dir, epoch_line(epoch, cfg, tr, val, val_ema, improved, use_ema, offsets, detail, seconds))
 
         distributed.barrier(world)  # rank 0's files are written before anyone reads them
         if not (run_dir / "best.pt").is_file():  # resumed at the last epoch without a best.pt
@@ -623,17 +518,9 @@ def train(cfg, run_dir, build_model=None) -> dict:
             if world.main:
                 checkpoint.save_atomic(run_dir / "best.pt", payload(start - 1))
             distributed.barrier(world)
-        best = checkpoint.load(run_dir / "best.pt", map_location=device)
-        model.load_state_dict(best["model"])
-        with cost.peak_memory(device) as infer_memory:
-            t_test = time.perf_counter()
-            test = evaluate_split(model, datasets["test"], cfg, len(classes), "test", world)
-            infer_seconds = time.perf_counter() - t_test
-        first = next(iter(eval_loaders["test"]), None)
-        costs = cost.run_cost(model, cfg, train_seconds=train_seconds, train_shapes=train_shapes,
-                              infer_seconds=infer_seconds, infer_shapes=test["n"], train_memory=train_memory,
-                              infer_memory=infer_memory, render_seconds=timer.seconds["render"],
-                              flops=cost.flops_per_shape(model, first) if first is not None else {})
+        best, test, costs = test_best(model, cfg, run_dir, datasets, classes, world, device, timer,
+                                      dict(train_seconds=train_seconds, train_shapes=train_shapes,
+                                           train_memory=train_memory))
         logger.scalars({"test/acc": test["acc"], "test/mean_class_acc": test["mean_class_acc"],
                         **{f"cost/{k}": v for k, v in costs.items() if isinstance(v, (int, float))}}, step)
     finally:
@@ -650,14 +537,12 @@ def train(cfg, run_dir, build_model=None) -> dict:
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
         "step_seconds": timer.means(), "cost": costs,
         **{f"test_{k}": v for k, v in view_report(model, test["azim"], test["elev"]).items()},
-        **{f"test_{k}": v for k, v in detail_report(datasets["test"], test).items()},
+        **{f"test_{k}": v for k, v in dataset_view_report(datasets["test"], test).items()},
         "history": history, "config": cfg_dict, "provenance": origin, "world_size": world.size,
     }
     if not world.main:
         return metrics
-    if hasattr(datasets["test"], "detail_angles") and test["azim"].numel():
-        detail_angles_png(datasets["test"].detail_angles(test["azim"].double().numpy(), test["elev"].double().numpy(),
-                                                         test["dist"].double().numpy()), run_dir / "detail_angles.png")
+    view_figures(datasets["test"], test, run_dir)
     write_results(run_dir, metrics)
     say(run_dir, f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val {best_acc:.4f} "
           f"at epoch {best_epoch + 1})")

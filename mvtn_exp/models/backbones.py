@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Callable, Optional, Union
 
 import torch
 from torch import Tensor, nn
+
+from ..options import OPTIONS, OptionConfig
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -277,3 +280,46 @@ def build_backbone(name: str, num_classes: int, weights: Optional[PathLike] = No
     if name not in BACKBONES:
         raise ValueError(f"unknown backbone {name!r}; allowed: {', '.join(sorted(BACKBONES))}")
     return BACKBONES[name](num_classes=num_classes, weights=weights, in_channels=in_channels)
+
+
+# ----------------------------------------------------------------------------- config options (backbone=NAME)
+register = OPTIONS["backbone"].register
+
+
+@dataclass
+class BackboneConfig(OptionConfig):
+    """The 2D backbone shared over views. ``weights``: a local torchvision/timm-style state_dict file
+    (nothing is downloaded)."""
+
+    weights: Optional[str] = None
+
+    kind = "backbone"
+
+    @property
+    def feature_dim(self) -> int:
+        """Width of the backbone's per-view feature."""
+        return FEATURE_DIMS[self.name]
+
+
+@register("resnet18")
+@dataclass
+class ResNet18Config(BackboneConfig):
+    name: str = "resnet18"
+
+
+@register("resnet34")
+@dataclass
+class ResNet34Config(BackboneConfig):
+    name: str = "resnet34"
+
+
+@register("resnet50")
+@dataclass
+class ResNet50Config(BackboneConfig):
+    name: str = "resnet50"
+
+
+@register("small_cnn")
+@dataclass
+class SmallCNNConfig(BackboneConfig):
+    name: str = "small_cnn"

@@ -15,10 +15,14 @@ N >= k points (checked at compose time against the points G reads).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Sequence
 
 import torch
 from torch import Tensor, nn
+
+from ..checks import at_least
+from .point_encoders import PointEncoderConfig, register
 
 EDGE_WIDTHS = (64, 64, 128, 256)
 
@@ -93,3 +97,26 @@ class DGCNN(nn.Module):
             feats.append(x)
         g = self.embed(torch.cat(feats, dim=1))  # [B, emb_dims, N]
         return self.head(torch.cat([g.amax(dim=2), g.mean(dim=2)], dim=1))
+
+
+@register("dgcnn")
+@dataclass
+class DGCNNConfig(PointEncoderConfig):
+    """DGCNN: ``k`` neighbours per point in feature space, ``emb_dims`` wide before pooling."""
+
+    name: str = "dgcnn"
+    k: int = 20
+    emb_dims: int = 1024
+
+    def validate(self) -> "DGCNNConfig":
+        super().validate()
+        at_least("point_encoder.k", self.k, 1)
+        at_least("point_encoder.emb_dims", self.emb_dims, 1)
+        return self
+
+    def kwargs(self) -> dict:
+        return {"k": self.k, "emb_dims": self.emb_dims}
+
+    def check_points(self, n: int, where: str) -> None:
+        if n < self.k:
+            raise ValueError(f"point_encoder.k={self.k}: DGCNN needs at least k points, G reads {n} ({where})")

@@ -9,11 +9,17 @@ The backbone's own ``fc`` is never called (only ``backbone.features``); the clas
 """
 from __future__ import annotations
 
-from typing import Callable, Optional, Union
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, Optional, Union
 
 from torch import Tensor, nn
 
+from ..checks import fraction, one_of
+from ..options import OPTIONS, OptionConfig
 from .backbones import PathLike, build_backbone, load_weights
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..schema import TrainConfig
 
 POOLS = ("max", "mean")
 
@@ -135,3 +141,68 @@ def build_multiview(name: str, backbone: Union[nn.Module, str], num_classes: int
     if name not in MULTIVIEW:
         raise ValueError(f"unknown multi-view network {name!r}; allowed: {', '.join(sorted(MULTIVIEW))}")
     return MULTIVIEW[name](backbone, num_classes, **kw)
+
+
+# ----------------------------------------------------------------------------- config options (mvnet=NAME)
+register = OPTIONS["mvnet"].register
+
+
+@dataclass
+class MVNetConfig(OptionConfig):
+    """The multi-view network C (``mvnet=NAME``): ``dropout`` on the pooled descriptor. A net with a
+    training schedule of its own (ViewGCN's stages) overrides ``stage_span`` / ``holds_views`` /
+    ``start_epoch``; the trainer calls them for every net."""
+
+    dropout: float = 0.0
+
+    kind = "mvnet"
+
+    def validate(self) -> "MVNetConfig":
+        super().validate()
+        fraction("mvnet.dropout", self.dropout)
+        return self
+
+    def kwargs(self) -> dict:
+        """Constructor arguments beyond the backbone, the class count and the weights."""
+        return {"dropout": self.dropout}
+
+    def build(self, backbone: str, num_classes: int, weights: Optional[str] = None) -> MVCNN:
+        return build_multiview(self.name, backbone, num_classes, weights=weights, **self.kwargs())
+
+    def stage_span(self, epoch: int, epochs: int) -> tuple[int, int]:
+        """``(first epoch, epochs)`` of the training stage holding 0-based ``epoch``: the whole run."""
+        return 0, epochs
+
+    def holds_views(self, epoch: int) -> bool:
+        """Whether 0-based ``epoch`` trains C on G's initial views with G frozen; never by default."""
+        return False
+
+    def start_epoch(self, mvnet: nn.Module, epoch: int) -> Optional[str]:
+        """Prepare the net for ``epoch``; a line to log when model selection restarts (None: it does not)."""
+        return None
+
+
+@register("mvcnn")
+@dataclass
+class MVCNNConfig(MVNetConfig):
+    """MVCNN: the shared backbone's view features pooled (``pool``: max | mean), a linear classifier."""
+
+    name: str = "mvcnn"
+    pool: str = "max"
+
+    def validate(self) -> "MVCNNConfig":
+        super().validate()
+        one_of("mvnet.pool", self.pool, POOLS)
+        return self
+
+    def kwargs(self) -> dict:
+        return {"pool": self.pool, "dropout": self.dropout}
+
+
+@register("late_fusion")
+@dataclass
+class LateFusionConfig(MVCNNConfig):
+    """Late fusion: each view classified on its own, the M logits pooled (``pool``: mean | max)."""
+
+    name: str = "late_fusion"
+    pool: str = "mean"

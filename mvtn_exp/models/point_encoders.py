@@ -10,12 +10,16 @@ Every encoder maps points ``[B, N, 3] -> [B, out_features]`` and exposes ``out_f
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, Optional, Sequence, Union
 
 import torch
 from torch import Tensor, nn
 
 from mvtn_exp.data.shapes import Meshes, PointClouds
+
+from ..checks import at_least
+from ..options import OPTIONS, OptionConfig
 
 from .pooled_layer import pooled_layer
 
@@ -128,6 +132,43 @@ def build_point_encoder(name: str, out_features: int = 40, **kw) -> nn.Module:
     if name not in POINT_ENCODERS:
         raise ValueError(f"unknown point encoder {name!r}; allowed: {', '.join(sorted(POINT_ENCODERS))}")
     return POINT_ENCODERS[name](out_features=out_features, **kw)
+
+
+# ----------------------------------------------------------------------------- config options (point_encoder=NAME)
+register = OPTIONS["point_encoder"].register
+
+
+@dataclass
+class PointEncoderConfig(OptionConfig):
+    """G's point encoder: ``[B, N, 3] -> [B, features]`` (b = 40 in the paper)."""
+
+    features: int = 40
+
+    kind = "point_encoder"
+
+    def validate(self) -> "PointEncoderConfig":
+        super().validate()
+        at_least("point_encoder.features", self.features, 1)
+        return self
+
+    def kwargs(self) -> dict:
+        """The encoder's own constructor arguments (beyond ``out_features``)."""
+        return {}
+
+    def check_points(self, n: int, where: str) -> None:
+        """One line if the encoder cannot read ``n`` points per shape (``where``: the keys that set n)."""
+
+
+@register("pointnet")
+@dataclass
+class PointNetConfig(PointEncoderConfig):
+    """PointNet; ``use_tnet``: the input transform."""
+
+    name: str = "pointnet"
+    use_tnet: bool = False
+
+    def kwargs(self) -> dict:
+        return {"use_tnet": self.use_tnet}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -15,12 +15,17 @@ ModelNet40 numbers; this is the plain version: a few blocks over the per-view fe
 """
 from __future__ import annotations
 
-from typing import Optional, Union
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional, Union
 
 from torch import Tensor, nn
 
+from ..checks import at_least
 from .backbones import PathLike
-from .multiview import MVCNN
+from .multiview import MVCNN, MVCNNConfig, register
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..schema import TrainConfig
 
 
 class ViewBlock(nn.Module):
@@ -79,3 +84,37 @@ def check_view_transformer(blocks: int, heads: int, width: int) -> None:
     if heads < 1 or width % heads:
         raise ValueError(f"mvnet.heads={heads} must be >= 1 and divide the token width {width} "
                          "(mvnet.width, or the backbone's feature size when mvnet.width is null)")
+
+
+@register("view_transformer")
+@dataclass
+class ViewTransformerConfig(MVCNNConfig):
+    """``blocks`` self-attention blocks with ``heads`` heads over the view features as a set, tokens
+    ``width`` wide (null: the backbone's feature size), MLP ``mlp_ratio`` x wide, then ``pool``."""
+
+    name: str = "view_transformer"
+    blocks: int = 2
+    heads: int = 4
+    width: Optional[int] = None
+    mlp_ratio: float = 2.0
+
+    def validate(self) -> "ViewTransformerConfig":
+        super().validate()
+        at_least("mvnet.blocks", self.blocks, 1)
+        at_least("mvnet.heads", self.heads, 1)
+        if self.width is not None:
+            at_least("mvnet.width", self.width, 1)
+        at_least("mvnet.mlp_ratio", self.mlp_ratio, 0.0, strict=True)
+        return self
+
+    def check(self, cfg: "TrainConfig") -> None:
+        feature_dim = cfg.backbone.feature_dim
+        width = self.width if self.width is not None else feature_dim
+        if width % self.heads:
+            raise ValueError(f"mvnet.heads={self.heads} must divide the view transformer's token width {width} "
+                             f"(mvnet.width={self.width}; null takes backbone={cfg.backbone.name}'s feature size "
+                             f"{feature_dim})")
+
+    def kwargs(self) -> dict:
+        return {**super().kwargs(), "blocks": self.blocks, "heads": self.heads, "width": self.width,
+                "mlp_ratio": self.mlp_ratio}

@@ -37,14 +37,19 @@ Differences from the official code (weixmath/view-GCN), on purpose:
 """
 from __future__ import annotations
 
-from typing import Optional, Union
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional, Union
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..checks import at_least
 from .backbones import PathLike
-from .multiview import MVCNN
+from .multiview import MVCNN, MVNetConfig, register
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..schema import TrainConfig
 
 _START = torch.tensor([0.5772, 0.7071, 0.4082])  # a generic direction: farthest-point sampling starts from it
 
@@ -217,3 +222,58 @@ class ViewGCN(MVCNN):
         extra = aux[key]                                        # [B, n, K]
         extra_loss = loss_fn(extra.reshape(-1, extra.shape[-1]), labels.repeat_interleave(extra.shape[1]))
         return extra_loss if key == "per_view" else loss_fn(logits, labels) + extra_loss
+
+
+@register("viewgcn")
+@dataclass
+class ViewGCNConfig(MVNetConfig):
+    """ViewGCN: ``k`` neighbours per view (any M >= 2; max-pooled levels). ``stages``: ``[S1, S2]``
+    trains S1 epochs on single views (G frozen on its initial views), then S2 epochs of the whole
+    network; S1 + S2 = ``epochs``; the learning-rate schedule runs over each stage on its own and
+    model selection counts stage 2 only (null: one stage)."""
+
+    name: str = "viewgcn"
+    dropout: float = 0.5
+    k: int = 4
+    stages: Optional[list[int]] = None
+
+    def validate(self) -> "ViewGCNConfig":
+        super().validate()
+        at_least("mvnet.k", self.k, 1)
+        if self.stages is not None and (len(self.stages) != 2 or any(int(s) != s or s < 1 for s in self.stages)):
+            raise ValueError(f"mvnet.stages={list(self.stages)}: expected [S1, S2], two whole numbers of epochs >= 1 "
+                             "(single views, then the whole network)")
+        return self
+
+    def check(self, cfg: "TrainConfig") -> None:
+        """One-line errors naming the keys for settings ViewGCN cannot take (its graph needs M >= 2)."""
+        if cfg.views < 2:
+            raise ValueError(f"views={cfg.views}: mvnet=viewgcn builds a graph over the views and needs views >= 2")
+        n_warm = getattr(cfg.selector, "warmup_num_views", None)
+        if n_warm is not None and n_warm < 2:
+            raise ValueError(f"selector.warmup_num_views={n_warm}: mvnet=viewgcn needs at least 2 views")
+        if self.stages is not None and sum(self.stages) != cfg.epochs:
+            raise ValueError(f"mvnet.stages={list(self.stages)} sums to {sum(self.stages)} epochs but "
+                             f"epochs={cfg.epochs}: set epochs={sum(self.stages)} or change the stages")
+
+    def kwargs(self) -> dict:
+        return {"dropout": self.dropout, "k": self.k}
+
+    def stage_span(self, epoch: int, epochs: int) -> tuple[int, int]:
+        """The single-view stage or the whole-network stage holding 0-based ``epoch``."""
+        if self.stages is None:
+            return 0, epochs
+        return (0, self.stages[0]) if epoch < self.stages[0] else (self.stages[0], epochs - self.stages[0])
+
+    def holds_views(self, epoch: int) -> bool:
+        """Stage 1 trains C on G's initial views with G frozen."""
+        return self.stages is not None and epoch < self.stages[0]
+
+    def start_epoch(self, mvnet: nn.Module, epoch: int) -> Optional[str]:
+        """Set the net's stage for ``epoch``; a line to log when stage 2 starts (model selection restarts)."""
+        if self.stages is None:
+            return None
+        mvnet.stage.fill_(1 if self.holds_views(epoch) else 2)
+        if epoch == self.stages[0]:
+            return f"epoch {epoch + 1}: ViewGCN stage 2 (the whole network); model selection counts from here"
+        return None

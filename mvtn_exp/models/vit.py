@@ -13,9 +13,17 @@ downloaded.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from .backbones import BackboneConfig, register
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..schema import TrainConfig
 
 PATCH = 16
 REF_GRID = 14  # 224 / 16: the grid the position embedding is stored for
@@ -128,3 +136,23 @@ def vit_tiny(num_classes: int = 1000, in_channels: int = 3) -> VisionTransformer
 def vit_small(num_classes: int = 1000, in_channels: int = 3) -> VisionTransformer:
     """ViT-Small/16: 384-d, 12 blocks, 6 heads (22,050,664 parameters with 1000 classes)."""
     return VisionTransformer(num_classes, 384, 12, 6, in_channels)
+
+
+@dataclass
+class ViTConfig(BackboneConfig):
+    """A ViT backbone: the image size must be a multiple of the patch size."""
+
+    def check(self, cfg: "TrainConfig") -> None:
+        check_image_size(self.name, cfg.image_size)
+
+
+@register("vit_tiny")
+@dataclass
+class ViTTinyConfig(ViTConfig):
+    name: str = "vit_tiny"
+
+
+@register("vit_small")
+@dataclass
+class ViTSmallConfig(ViTConfig):
+    name: str = "vit_small"

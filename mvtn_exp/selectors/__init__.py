@@ -1,12 +1,13 @@
 """View selectors: ``forward(points [B, N, 3]) -> (azim, elev, dist)``, each ``[B, M]``.
 
-Fixed layouts live in ``fixed.py``, the learned MVTN regressor in ``mvtn.py``; ``SELECTORS`` /
-``build_selector`` is the registry the configs use.
+Fixed layouts live in ``fixed.py``, the paper's learned regressor in ``mvtn.py``, the
+point-of-interest G and this project's recipe in ``poi.py``, scene-parameter optimisation in
+``optimized.py``. Each option's config dataclass is registered in ``config.REGISTRY`` (``selector=NAME``)
+and builds its module; how G trains in the loop is ``training.py`` / ``probes.py``.
 """
 from __future__ import annotations
 
-from typing import Callable
-
+from mvtn_exp.selectors.config import REGISTRY, LearnedSelectorConfig, SelectorConfig, register, schema
 from mvtn_exp.selectors.fixed import (CircularSelector, NoisySelector, RandomSelector, SphericalSelector,
                                       ViewSelector, check_views)
 from mvtn_exp.selectors.mvtn import VARIANTS, MVTNSelector
@@ -34,7 +35,9 @@ def mvtn_spherical(views: int, **kw) -> MVTNSelector:
     return MVTNSelector(views, "spherical", **kw)
 
 
-SELECTORS: dict[str, Callable[..., ViewSelector]] = {
+# The selector modules by name, for building one directly with its constructor's arguments
+# (configs build through their schema: ``REGISTRY[name]().build(views, seed, point_encoder)``).
+MODULES = {
     "circular": CircularSelector,
     "spherical": SphericalSelector,
     "random": RandomSelector,
@@ -45,19 +48,22 @@ SELECTORS: dict[str, Callable[..., ViewSelector]] = {
     "mvtn_circular": mvtn_circular,
     "mvtn_spherical": mvtn_spherical,
     "mvtn_poi": PointOfInterestSelector,
+    "poi": PointOfInterestSelector,
 }
+SELECTORS = REGISTRY  # every selector option, by name
 
 
 def build_selector(name: str, views: int, **kw) -> ViewSelector:
-    """Build a registered selector with M = ``views``."""
-    if name not in SELECTORS:
-        raise ValueError(f"unknown selector {name!r}; allowed: {', '.join(sorted(SELECTORS))}")
+    """Build a selector module with M = ``views`` from its constructor's arguments ``kw``."""
+    if name not in MODULES:
+        raise ValueError(f"unknown selector {name!r}; allowed: {', '.join(sorted(MODULES))}")
     check_views(views)
-    return SELECTORS[name](views, **kw)
+    return MODULES[name](views, **kw)
 
 
 __all__ = [
-    "SELECTORS", "VARIANTS", "CircularSelector", "MVTNSelector", "NoisySelector", "OptimizedSelector", "RandomSelector", "SphericalSelector",
-    "PointOfInterestSelector", "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct", "mvtn_direct_offset",
-    "mvtn_spherical",
+    "MODULES", "REGISTRY", "SELECTORS", "VARIANTS", "CircularSelector", "LearnedSelectorConfig", "MVTNSelector",
+    "NoisySelector", "OptimizedSelector", "PointOfInterestSelector", "RandomSelector", "SelectorConfig",
+    "SphericalSelector", "ViewSelector", "build_selector", "check_views", "mvtn_circular", "mvtn_direct",
+    "mvtn_direct_offset", "mvtn_spherical", "register", "schema",
 ]

@@ -11,11 +11,14 @@ Fixed selectors only read the batch size, device and dtype of ``points``.
 from __future__ import annotations
 
 import operator
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
+from mvtn_exp.checks import at_least, one_of
 from mvtn_exp.render import layouts
+from mvtn_exp.selectors.config import SelectorConfig, register
 
 Views = tuple[Tensor, Tensor, Tensor]
 
@@ -46,6 +49,10 @@ class ViewSelector(nn.Module):
         if not isinstance(points, Tensor) or points.dim() != 3 or points.shape[-1] != 3:
             shape = list(points.shape) if isinstance(points, Tensor) else type(points).__name__
             raise ValueError(f"{type(self).__name__} expects points [B, N, 3], got {shape}")
+
+    def refine(self, model, batch: dict, views: Views) -> Views:
+        """The views after any per-batch work against the model's R and C (none: ``views``)."""
+        return views
 
     @staticmethod
     def _dtype(points: Tensor) -> torch.dtype:
@@ -174,3 +181,84 @@ class NoisySelector(ViewSelector):
 
     def extra_repr(self) -> str:
         return f"views={self.views}, layout={self.layout}, azim_std={self.azim_std}, elev_std={self.elev_std}"
+
+
+# ----------------------------------------------------------------------------- config options
+
+
+@register("circular")
+@dataclass
+class CircularConfig(SelectorConfig):
+    """Fixed: M views at ``elevation`` degrees, azimuths ``360 k / M``; the same for every shape.
+    When: the paper's fixed baseline for upright shapes (ModelNet's MVCNN setting)."""
+
+    name: str = "circular"
+    elevation: float = 30.0
+
+    def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
+        return CircularSelector(views, elevation=self.elevation, distance=self.distance)
+
+
+@register("spherical")
+@dataclass
+class SphericalConfig(SelectorConfig):
+    """Fixed: exactly M views over the sphere (``sphere``: equal_area, the paper's rings, or
+    fibonacci). When: shapes in any pose; the strongest fixed baseline where no side is special."""
+
+    name: str = "spherical"
+    sphere: str = "equal_area"
+
+    def validate(self) -> "SphericalConfig":
+        super().validate()
+        one_of("selector.sphere", self.sphere, layouts.SPHERES)
+        return self
+
+    def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
+        return SphericalSelector(views, distance=self.distance, sphere=self.sphere)
+
+
+@register("random")
+@dataclass
+class RandomConfig(SelectorConfig):
+    """Random directions, new every training step; one draw from the run's seed at evaluation."""
+
+    name: str = "random"
+
+    def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
+        return RandomSelector(views, distance=self.distance, seed=seed)
+
+
+@dataclass
+class LayoutConfig(SelectorConfig):
+    """A fixed starting layout: ``base_layout`` circular (at ``elevation``) or spherical (``sphere``)."""
+
+    base_layout: str = "circular"
+    elevation: float = 30.0
+    sphere: str = "equal_area"
+
+    def validate(self) -> "LayoutConfig":
+        super().validate()
+        one_of("selector.base_layout", self.base_layout, BASE_LAYOUTS)
+        one_of("selector.sphere", self.sphere, layouts.SPHERES)
+        return self
+
+
+@register("noisy")
+@dataclass
+class NoisyConfig(LayoutConfig):
+    """The paper's alternative to learned views: the base layout plus Gaussian noise of
+    ``noise_azim`` / ``noise_elev`` degrees std, redrawn at every training step; none at evaluation."""
+
+    name: str = "noisy"
+    noise_azim: float = 18.0
+    noise_elev: float = 9.0
+
+    def validate(self) -> "NoisyConfig":
+        super().validate()
+        at_least("selector.noise_azim", self.noise_azim, 0.0)
+        at_least("selector.noise_elev", self.noise_elev, 0.0)
+        return self
+
+    def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
+        return NoisySelector(views, layout=self.base_layout, azim_std=self.noise_azim, elev_std=self.noise_elev,
+                             elevation=self.elevation, distance=self.distance, sphere=self.sphere)

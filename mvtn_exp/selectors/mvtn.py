@@ -50,14 +50,20 @@ distance bound is 0 when the distance is not learned) is the one place the bound
 """
 from __future__ import annotations
 
-from typing import Optional, Union
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional, Union
 
 import torch
 from torch import Tensor, nn
 
+from mvtn_exp.checks import at_least, one_of
 from mvtn_exp.models.point_encoders import build_point_encoder
 from mvtn_exp.render import layouts
+from mvtn_exp.selectors.config import LearnedSelectorConfig, register
 from mvtn_exp.selectors.fixed import ViewSelector, Views
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mvtn_exp.schema import TrainConfig
 
 VARIANTS = ("direct", "direct_offset", "circular", "spherical")
 REGRESSORS = ("compact", "official")
@@ -193,3 +199,91 @@ class MVTNSelector(ViewSelector):
     def extra_repr(self) -> str:
         return (f"views={self.views}, variant={self.variant!r}, features={self.features}, "
                 f"distance={self.distance}, learn_distance={self.learn_distance}, regressor={self.regressor_kind!r}")
+
+
+# ----------------------------------------------------------------------------- config options
+@dataclass
+class MVTNConfig(LearnedSelectorConfig):
+    """The paper's learned G (a point encoder from the ``point_encoder`` group, then the regressor):
+    ``azim_bound`` / ``elev_bound`` (degrees; null: the variant's, see the module docstring),
+    ``learn_distance`` within ``distance_bound``, ``init_std`` (null: 0 for the offset variants,
+    PyTorch's default for direct), ``regressor`` (compact | official). Trained as the paper does:
+    autograd through the differentiable renderer on C's loss."""
+
+    azim_bound: Optional[float] = None
+    elev_bound: Optional[float] = None
+    learn_distance: bool = False
+    distance_bound: float = 1.0
+    init_std: Optional[float] = None
+    regressor: str = "compact"
+
+    variant = ""  # class attribute: the MVTNSelector variant
+
+    def validate(self) -> "MVTNConfig":
+        super().validate()
+        one_of("selector.regressor", self.regressor, REGRESSORS)
+        for key in ("azim_bound", "elev_bound", "init_std"):
+            if getattr(self, key) is not None:
+                at_least(f"selector.{key}", getattr(self, key), 0.0)
+        if self.learn_distance:
+            at_least("selector.distance_bound", self.distance_bound, 0.0, strict=True)
+            if self.grad == "smoothed":
+                raise ValueError("selector.grad=smoothed estimates G's azimuth and elevation gradients only; "
+                                 "selector.learn_distance=true needs selector.grad=autograd")
+        return self
+
+    def check(self, cfg: "TrainConfig") -> None:
+        super().check(cfg)
+        n = min(cfg.dataset.num_points, self.num_points or cfg.dataset.num_points)
+        cfg.point_encoder.check_points(n, f"selector.num_points={self.num_points}, "
+                                          f"dataset.num_points={cfg.dataset.num_points}")
+
+    def layout_kwargs(self) -> dict:
+        return {"sphere": self.sphere}
+
+    def build(self, views: int, seed: int, point_encoder=None) -> "MVTNSelector":
+        pe = point_encoder
+        return MVTNSelector(views, self.variant, point_encoder=pe.name, features=pe.features, distance=self.distance,
+                            learn_distance=self.learn_distance, distance_bound=self.distance_bound,
+                            azim_bound=self.azim_bound, elev_bound=self.elev_bound, init_std=self.init_std,
+                            point_encoder_kwargs=pe.kwargs(), regressor=self.regressor, **self.layout_kwargs())
+
+
+@register("mvtn_direct")
+@dataclass
+class MVTNDirectConfig(MVTNConfig):
+    """The paper's MVTN-direct: u = u_bound * tanh(G(S)), no initial views."""
+
+    name: str = "mvtn_direct"
+    variant = "direct"
+
+
+@register("mvtn_direct_offset")
+@dataclass
+class MVTNDirectOffsetConfig(MVTNConfig):
+    """Views as free as mvtn_direct's, regressed as offsets from the spherical layout (an input of G)."""
+
+    name: str = "mvtn_direct_offset"
+    variant = "direct_offset"
+
+
+@register("mvtn_spherical")
+@dataclass
+class MVTNSphericalConfig(MVTNConfig):
+    """The paper's MVTN-spherical: offsets (+-180/M azimuth, +-90 elevation) around the spherical layout."""
+
+    name: str = "mvtn_spherical"
+    variant = "spherical"
+
+
+@register("mvtn_circular")
+@dataclass
+class MVTNCircularConfig(MVTNConfig):
+    """The paper's MVTN-circular: offsets around the circular layout at ``elevation`` degrees."""
+
+    name: str = "mvtn_circular"
+    elevation: float = 30.0
+    variant = "circular"
+
+    def layout_kwargs(self) -> dict:
+        return {"elevation": self.elevation}

@@ -19,11 +19,15 @@ gradient (soft mode).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mvtn_exp.selectors.fixed import BASE_LAYOUTS, ViewSelector, Views, base_layout
+from mvtn_exp.checks import at_least, one_of
+from mvtn_exp.selectors.config import register
+from mvtn_exp.selectors.fixed import BASE_LAYOUTS, LayoutConfig, ViewSelector, Views, base_layout
 
 OBJECTIVES = ("min_ce", "max_ce", "max_coverage", "min_coverage", "margin")
 
@@ -47,6 +51,10 @@ class OptimizedSelector(ViewSelector):
     def forward(self, points: Tensor) -> Views:
         """``[B, N, 3] -> (azim, elev, dist)``: the starting layout, each ``[B, M]``."""
         return self.base(points)
+
+    def refine(self, model, batch: dict, views: Views) -> Views:
+        """``steps`` gradient steps on the batch's views against the objective (``optimize_views``)."""
+        return optimize_views(model, batch, views, self)
 
     def extra_repr(self) -> str:
         return f"views={self.views}, layout={self.layout}, steps={self.steps}, lr={self.lr}, objective={self.objective}"
@@ -93,3 +101,32 @@ def optimize_views(model, batch: dict, views: Views, selector: OptimizedSelector
     finally:
         model.mvnet.train(was_training)
     return azim, elev, dist
+
+
+# ----------------------------------------------------------------------------- config option
+@register("optimized")
+@dataclass
+class OptimizedConfig(LayoutConfig):
+    """The paper's scene-parameter optimisation: the base layout, then ``steps`` gradient steps of
+    ``step_size`` on each batch's views against ``objective`` of the current C (labels included:
+    an analysis of what views alone do to C, not a deployable G)."""
+
+    name: str = "optimized"
+    steps: int = 10
+    step_size: float = 50.0
+    objective: str = "min_ce"
+
+    def validate(self) -> "OptimizedConfig":
+        super().validate()
+        one_of("selector.objective", self.objective, OBJECTIVES)
+        at_least("selector.steps", self.steps, 0)
+        at_least("selector.step_size", self.step_size, 0.0, strict=True)
+        return self
+
+    def uses_camera_gradient(self) -> bool:
+        return self.steps > 0
+
+    def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
+        return OptimizedSelector(views, layout=self.base_layout, steps=self.steps, lr=self.step_size,
+                                 objective=self.objective, elevation=self.elevation, distance=self.distance,
+                                 sphere=self.sphere)

@@ -37,15 +37,21 @@ once per shape and looked up at later steps (``cache`` shapes kept; ``invariant_
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import partial
-from typing import Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import torch
 from torch import Tensor, nn
 
+from mvtn_exp.checks import at_least, one_of
 from mvtn_exp.render import layouts
+from mvtn_exp.selectors.config import LearnedSelectorConfig, register
 from mvtn_exp.selectors.fixed import ViewSelector, Views
 from mvtn_exp.selectors.invariant_cache import InvariantCache
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mvtn_exp.schema import TrainConfig
 
 
 def invariant_descriptors(points: Tensor, ks: Sequence[int] = (16, 48)) -> Tensor:
@@ -167,3 +173,90 @@ class PointOfInterestSelector(ViewSelector):
         learned = ", learned" if isinstance(self.log_gain, nn.Parameter) else ""
         hyp = f", hypotheses={self.hypotheses} (active {int(self.active)})" if self.hypotheses > 1 else ""
         return f"views={self.views}, ks={self.ks}, gain={self.gain:g}{learned}, distance={self.distance}{hyp}"
+
+
+# ----------------------------------------------------------------------------- config options
+RACE_MODES = ("separate", "pooled")  # how C sees the hypotheses while they race (selectors/hypotheses.py)
+
+
+@register("mvtn_poi")
+@dataclass
+class PoiConfig(LearnedSelectorConfig):
+    """The point-of-interest G alone (defaults: the paper's training, autograd on C's loss).
+
+    ``gain``: how far the point of interest pulls the cameras from u0 (``learn_gain``: a parameter
+    of G starting there); ``cache``: shapes whose rotation-invariant descriptors are kept (0: none;
+    4096 shapes x 256 points: about 46 MB). ``hypotheses``: H sets of M views raced side by side
+    for at most ``race_epochs`` epochs, the one of lowest G loss kept (earlier once it leads every
+    other by ``race_z`` paired standard errors; null: never earlier); ``race_mode``: C classifies
+    each hypothesis's views as a shape of its own (separate) or all H x M views pooled (pooled)."""
+
+    name: str = "mvtn_poi"
+    gain: float = 8.0
+    cache: int = 4096
+    learn_gain: bool = False
+    hypotheses: int = 1
+    race_epochs: int = 0
+    race_z: Optional[float] = 3.0
+    race_mode: str = "separate"
+
+    def validate(self) -> "PoiConfig":
+        super().validate()
+        at_least("selector.gain", self.gain, 0.0, strict=True)
+        at_least("selector.cache", self.cache, 0)
+        at_least("selector.hypotheses", self.hypotheses, 1)
+        at_least("selector.race_epochs", self.race_epochs, 0)
+        if self.race_z is not None:
+            at_least("selector.race_z", self.race_z, 0.0)
+        one_of("selector.race_mode", self.race_mode, RACE_MODES)
+        if (self.hypotheses > 1) != (self.race_epochs > 0):
+            raise ValueError(f"selector.hypotheses={self.hypotheses} with selector.race_epochs={self.race_epochs}: "
+                             "set both (hypotheses >= 2 and race_epochs >= 1) or neither (hypotheses=1 race_epochs=0)")
+        if self.hypotheses > 1 and self.flip_explore > 0:
+            raise ValueError("selector.hypotheses with selector.flip_explore: choose one way to explore")
+        if self.from_ckpt and self.hypotheses > 1:
+            raise ValueError("selector.from_ckpt with selector.hypotheses > 1: a transferred G is frozen, it races "
+                             "nothing")
+        return self
+
+    def check(self, cfg: "TrainConfig") -> None:
+        super().check(cfg)
+        if self.hypotheses > 1 and cfg.mvnet.name == "viewgcn":
+            raise ValueError(f"selector.hypotheses={self.hypotheses} with mvnet=viewgcn: racing hypotheses is for "
+                             "MVCNN-style networks; use selector.hypotheses=1 selector.race_epochs=0")
+
+    def build(self, views: int, seed: int, point_encoder=None) -> PointOfInterestSelector:
+        return PointOfInterestSelector(views, distance=self.distance, gain=self.gain, sphere=self.sphere,
+                                       cache=self.cache, learn_gain=self.learn_gain, hypotheses=self.hypotheses)
+
+    def modules(self, views: int) -> dict:
+        from mvtn_exp.selectors.hypotheses import HypothesisRace
+
+        extra = super().modules(views)
+        return {**extra, "hypotheses": HypothesisRace(self.hypotheses)} if self.hypotheses > 1 else extra
+
+    def training(self):
+        from mvtn_exp.selectors.probes import ProbeTraining
+
+        return ProbeTraining if self.hypotheses > 1 else super().training()
+
+
+@register("poi")
+@dataclass
+class PoiRecipeConfig(PoiConfig):
+    """This project's learned views, the recipe that wins on view-dependent data, as defaults:
+    four hypotheses of the M views raced in pooled mode for at most 8 epochs, G trained on the
+    smoothed gradient (2 antithetic probe pairs, 10 degrees) of the centered true-class logit at
+    learning rate 1e-2, gain 32, C's BatchNorm statistics re-estimated over 24 training batches
+    before each validation; ``conf/selector/poi.yaml`` also picks the hard renderer with a camera
+    light on white shapes (``renderer=hard_camera``; a ``renderer=`` on the command line wins)."""
+
+    name: str = "poi"
+    gain: float = 32.0
+    hypotheses: int = 4
+    race_epochs: int = 8
+    race_mode: str = "pooled"
+    lr: float = 1e-2
+    grad: str = "smoothed"
+    loss: str = "centered_logit"
+    bn_recalibrate: int = 24

@@ -1,0 +1,123 @@
+"""One schema per option: a registry per component kind, option name -> its config dataclass.
+
+The kinds are ``selector``, ``point_encoder``, ``backbone`` and ``mvnet`` (``OPTIONS``). A
+component's own module defines its config, a dataclass subclassing the kind's base config (an
+``OptionConfig``) whose ``name`` defaults to the option's name, and registers it:
+
+    @OPTIONS["mvnet"].register("my_net")
+    @dataclass
+    class MyNetConfig(MVNetConfig):
+        name: str = "my_net"
+        width: int = 64
+
+Its ``conf/<kind>/<name>.yaml`` starts from the stored schema (``defaults: [/schema/<kind>/<name>@_here_]``),
+so ``mvnet=my_net mvnet.k=3`` (a key of another option) is refused at compose time, naming the
+option and the key (``foreign_key_message``). Every module of a kind's packages is imported before
+a registry is read (``load``), so a new option touches its own module and YAML only.
+"""
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Callable, Optional
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .schema import TrainConfig
+
+# kind -> the packages whose modules register its options
+PACKAGES = {"selector": ("mvtn_exp.selectors",), "point_encoder": ("mvtn_exp.models",),
+            "backbone": ("mvtn_exp.models",), "mvnet": ("mvtn_exp.models",)}
+
+
+class Options(dict):
+    """``name -> config class`` of one kind; ``moved``: old dotted key -> its new place (messages)."""
+
+    def __init__(self, kind: str, moved: Optional[dict] = None) -> None:
+        super().__init__()
+        self.kind, self.moved = kind, moved if moved is not None else {}
+
+    def register(self, name: str) -> Callable[[type], type]:
+        """Class decorator: ``<kind>=name`` builds from this config class."""
+        def deco(cls):
+            if name in self and self[name] is not cls:
+                raise ValueError(f"{self.kind} {name!r} is registered twice ({self[name].__name__}, {cls.__name__})")
+            if getattr(cls, "name", None) != name:
+                raise ValueError(f"{cls.__name__}: its name field defaults to {getattr(cls, 'name', None)!r}, "
+                                 f"registered as {self.kind} {name!r}")
+            self[name] = cls
+            return cls
+        return deco
+
+    def schema(self, name: str) -> type:
+        """The config class of ``<kind>=name`` (one line naming the options when unknown)."""
+        load(self.kind)
+        if name not in self:
+            raise ValueError(f"{self.kind}={name!r}: expected one of {', '.join(sorted(self))}")
+        return self[name]
+
+    def keys_of(self, name: str) -> set[str]:
+        """The keys of ``<kind>=name``."""
+        return {f.name for f in fields(self.schema(name))}
+
+    def moved_message(self, key: str) -> Optional[str]:
+        """One line for a dotted key that moved (``optim.selector_grad`` -> ``selector.grad``), else None."""
+        new = self.moved.get(key.lstrip("+~"))
+        if new is None:
+            return None
+        return (f"{key} moved to {new} (G's training settings belong to the selector, and recipes are selectors: "
+                "e.g. selector=poi); set " + new)
+
+    def foreign_key_message(self, name: str, key: str) -> str:
+        """One line for ``<kind>.key`` given to ``<kind>=name``, which has no such key."""
+        kind = self.kind
+        new = self.moved.get(f"{kind}.{key}", f"{kind}.{key}").split(".", 1)[1]
+        if new != key and new in self.keys_of(name):
+            return self.moved_message(f"{kind}.{key}")
+        owners = sorted(n for n in self if new in self.keys_of(n))
+        moved = f"; it moved to {kind}.{new}" if new != key else ""
+        where = f"; {kind}.{new} is a key of {kind}={', '.join(owners)}" if owners else ""
+        return (f"{kind}.{key}: {kind}={name} has no key {key!r}{moved}{where} (keys of {kind}={name}: "
+                f"{', '.join(sorted(self.keys_of(name)))})")
+
+
+OPTIONS: dict[str, Options] = {kind: Options(kind) for kind in PACKAGES}
+_LOADED: set[str] = set()
+
+
+def load(kind: Optional[str] = None) -> None:
+    """Import every module of the packages that register options (of ``kind``, or of all kinds)."""
+    for package in (PACKAGES[kind] if kind else sorted({p for ps in PACKAGES.values() for p in ps})):
+        if package in _LOADED:
+            continue
+        _LOADED.add(package)
+        pkg = importlib.import_module(package)
+        for info in pkgutil.iter_modules(pkg.__path__):
+            importlib.import_module(f"{package}.{info.name}")
+
+
+def option_of(cls: type) -> Optional[tuple[str, str]]:
+    """``(kind, name)`` of a registered config class, e.g. from a schema error's class name."""
+    load()
+    return next(((k, n) for k, reg in OPTIONS.items() for n, c in reg.items() if c is cls), None)
+
+
+@dataclass
+class OptionConfig:
+    """What every option's config has: ``name`` (chosen with ``<kind>=NAME``), ``validate()`` (its
+    own keys) and ``check(cfg)`` (against the whole ``TrainConfig``, e.g. the image size)."""
+
+    name: str = ""
+
+    kind = ""  # class attribute: the option's kind (its registry in OPTIONS)
+
+    def validate(self):
+        reg = OPTIONS[self.kind]
+        load(self.kind)
+        if reg.get(self.name) is not type(self):
+            raise ValueError(f"{self.kind}.name={self.name!r}: the option is chosen with {self.kind}=NAME, expected "
+                             f"one of {', '.join(sorted(reg))}")
+        return self
+
+    def check(self, cfg: "TrainConfig") -> None:
+        """Checks against the rest of the config; none by default."""

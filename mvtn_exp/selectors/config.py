@@ -1,0 +1,243 @@
+"""Selector options: one config dataclass per option, and the registry that maps a name to it.
+
+Each option (``selector=NAME``) is a dataclass registered with ``@register("NAME")`` in the module
+of its selector; ``conf/selector/NAME.yaml`` starts from it (``defaults: [/schema/selector/NAME@_here_]``),
+so a key of another option is refused at compose time. A config knows:
+
+- ``learned`` (class attribute): whether G has parameters to train;
+- ``build(views, seed, point_encoder)``: the ``ViewSelector`` module, M = ``views``;
+- ``modules(views)``: extra state the model keeps for G's training (``{}``; see ``training.py``);
+- ``training()``: the class of G's training in the loop (``selectors/training.py``);
+- ``validate()`` (own keys) and ``check(cfg)`` (against the whole ``TrainConfig``).
+
+Angles are degrees, distances world units (Y-up; ``render/cameras.py``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar, Optional
+
+from ..checks import at_least, fraction, one_of
+from ..options import OPTIONS, OptionConfig
+from ..render.layouts import SPHERES
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..schema import TrainConfig
+
+REGISTRY = OPTIONS["selector"]  # every selector option, by name (filled by the selector modules)
+register = REGISTRY.register
+schema = REGISTRY.schema
+
+
+@dataclass
+class SelectorConfig(OptionConfig):
+    """Keys every selector has: ``name`` (the option; set it with ``selector=NAME``) and
+    ``distance``, the camera distance in world units (the shapes lie in the unit sphere)."""
+
+    distance: float = 2.2
+
+    kind = "selector"
+
+    learned: ClassVar[bool] = False
+    training_keys: ClassVar[tuple] = ()
+
+    def validate(self) -> "SelectorConfig":
+        super().validate()
+        at_least("selector.distance", self.distance, 0.0, strict=True)
+        return self
+
+    def build(self, views: int, seed: int, point_encoder=None):
+        raise NotImplementedError(f"{type(self).__name__}.build")
+
+    def modules(self, views: int) -> dict:
+        """Extra modules the model keeps for G's training (their buffers travel in checkpoints)."""
+        return {}
+
+    def training(self):
+        from .training import SelectorTraining
+
+        return SelectorTraining
+
+    def kept_points(self) -> Optional[int]:
+        """How many of the shape's points G reads (None: all)."""
+        return None
+
+    def lr_scale(self, epoch: int) -> float:
+        """G's learning-rate multiplier on top of the schedule during 0-based ``epoch``."""
+        return 1.0
+
+    def uses_camera_gradient(self) -> bool:
+        """Whether training differentiates R with respect to the cameras (then R needs a useful gradient)."""
+        return False
+
+
+GRADIENTS = ("autograd", "smoothed")  # how G gets its gradient (engine/view_gradient.py)
+LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
+WARMUP_VIEWS = ("u0", "random", "spherical")
+BN_SCOPES = ("all", "eval")  # what re-estimated BatchNorm statistics serve (engine/precise_bn.py)
+
+
+@dataclass
+class LearnedSelectorConfig(SelectorConfig):
+    """A G with parameters, and how it trains (``selectors/training.py``, ``selectors/probes.py``).
+
+    ``sphere``: how spherical layouts spread M views (``equal_area``: the paper's rings, or
+    ``fibonacci``). ``num_points``: G reads the first n of the shape's points (null: all).
+    ``from_ckpt``: view transfer: G's weights from another run's checkpoint, frozen.
+
+    G's optimiser (an AdamW group beside C's): ``lr``, ``beta1`` (first-moment decay), ``clip``
+    (G's gradient L2 norm clipped before the step), ``stop_epoch`` (G's learning rate is 0 from
+    this 0-based epoch on; null: never). ``warmup_epochs``: G frozen for the first epochs while C
+    trains on ``warmup_views`` (u0: G's initial views; random; spherical), ``warmup_num_views`` of
+    them (null: ``views``).
+
+    ``grad``: ``autograd`` (the paper's: through the differentiable renderer) or ``smoothed`` (the
+    task loss smoothed over the views by a Gaussian of ``probe_sigma`` degrees, estimated from
+    ``probe_pairs`` antithetic pairs of renders every ``probe_every`` steps; any renderer).
+    ``loss``: what G minimises: ``task`` (the paper's: C's loss) or ``centered_logit``
+    (``mean_c z_c - z_y``; needs ``grad=smoothed``). ``flip_explore``: for the first
+    ``flip_epochs`` epochs each view is rendered from its antipode with this probability, and a
+    view whose antipode had the lower loss turns round (0: off; ``selectors/polarity.py``).
+    ``bn_recalibrate``: before each validation C's BatchNorm statistics are re-estimated over this
+    many training batches on G's current views (0: the paper's running averages);
+    ``bn_recalibrate_scope``: ``eval`` (they serve validation, checkpoints and test; training keeps
+    its own) or ``all``.
+    """
+
+    sphere: str = "equal_area"
+    num_points: Optional[int] = 256
+    from_ckpt: Optional[str] = None
+    lr: float = 1e-3
+    beta1: float = 0.9
+    clip: float = 30.0
+    stop_epoch: Optional[int] = None
+    warmup_epochs: int = 0
+    warmup_views: str = "u0"
+    warmup_num_views: Optional[int] = None
+    grad: str = "autograd"
+    loss: str = "task"
+    probe_pairs: int = 2
+    probe_sigma: float = 10.0
+    probe_every: int = 1
+    flip_explore: float = 0.0
+    flip_epochs: int = 10
+    bn_recalibrate: int = 0
+    bn_recalibrate_scope: str = "eval"
+
+    learned: ClassVar[bool] = True
+    # keys that set how G trains, not what the model is: they may change when a run is resumed
+    training_keys: ClassVar[tuple] = ("lr", "beta1", "clip", "stop_epoch", "warmup_epochs", "warmup_views",
+                                      "warmup_num_views", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every",
+                                      "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
+                                      "race_z", "race_mode", "cache")
+
+    def validate(self) -> "LearnedSelectorConfig":
+        super().validate()
+        one_of("selector.sphere", self.sphere, SPHERES)
+        if self.num_points is not None:
+            at_least("selector.num_points", self.num_points, 1)
+        at_least("selector.lr", self.lr, 0.0)
+        fraction("selector.beta1", self.beta1)
+        at_least("selector.clip", self.clip, 0.0, strict=True)
+        if self.stop_epoch is not None:
+            at_least("selector.stop_epoch", self.stop_epoch, 0)
+        at_least("selector.warmup_epochs", self.warmup_epochs, 0)
+        one_of("selector.warmup_views", self.warmup_views, WARMUP_VIEWS)
+        if self.warmup_num_views is not None:
+            at_least("selector.warmup_num_views", self.warmup_num_views, 1)
+            if self.warmup_epochs == 0:
+                raise ValueError(f"selector.warmup_num_views={self.warmup_num_views}: there is no warm-up; set "
+                                 "selector.warmup_epochs >= 1")
+        one_of("selector.grad", self.grad, GRADIENTS)
+        one_of("selector.loss", self.loss, LOSSES)
+        if self.loss != "task" and self.grad != "smoothed":
+            raise ValueError(f"selector.loss={self.loss}: G's own loss is estimated from perturbed renders; it needs "
+                             "selector.grad=smoothed (autograd trains G on C's loss)")
+        at_least("selector.probe_pairs", self.probe_pairs, 1)
+        at_least("selector.probe_sigma", self.probe_sigma, 0.0, strict=True)
+        at_least("selector.probe_every", self.probe_every, 1)
+        if not 0.0 <= self.flip_explore < 1.0:
+            raise ValueError(f"selector.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
+        at_least("selector.flip_epochs", self.flip_epochs, 1)
+        at_least("selector.bn_recalibrate", self.bn_recalibrate, 0)
+        one_of("selector.bn_recalibrate_scope", self.bn_recalibrate_scope, BN_SCOPES)
+        if self.from_ckpt and self.flip_explore > 0:
+            raise ValueError("selector.from_ckpt with selector.flip_explore: a transferred G is frozen, its views are "
+                             "not turned round")
+        return self
+
+    def check(self, cfg: "TrainConfig") -> None:
+        if cfg.batch_size < 2:
+            raise ValueError(f"batch_size={cfg.batch_size}: a learned selector (BatchNorm in G) trains on batches "
+                             "of at least 2 shapes")
+        n_warm = self.warmup_num_views
+        if n_warm is not None and n_warm != cfg.views and self.warmup_views == "u0":
+            raise ValueError(f"selector.warmup_num_views={n_warm} with selector.warmup_views=u0: G's initial views "
+                             f"are views={cfg.views}; use warmup_views=spherical or random for another count")
+
+    def modules(self, views: int) -> dict:
+        from .polarity import ViewPolarity
+
+        return {"polarity": ViewPolarity(views)} if self.flip_explore > 0 else {}
+
+    def training(self):
+        from .probes import ProbeTraining
+        from .training import LearnedTraining
+
+        return ProbeTraining if (self.grad == "smoothed" or self.flip_explore > 0) else LearnedTraining
+
+    def kept_points(self) -> Optional[int]:
+        return self.num_points
+
+    def uses_camera_gradient(self) -> bool:
+        return not self.from_ckpt and self.grad == "autograd"
+
+    def lr_scale(self, epoch: int) -> float:
+        """G's learning-rate multiplier on top of the schedule during 0-based ``epoch``."""
+        return 0.0 if self.stop_epoch is not None and epoch >= self.stop_epoch else 1.0
+
+
+# Keys that moved, old dotted key -> where it is now (the CLI names the new place, exit 2).
+MOVED = {
+    "optim.lr_selector": "selector.lr", "optim.clip_selector": "selector.clip",
+    "optim.selector_beta1": "selector.beta1", "optim.selector_epochs": "selector.stop_epoch",
+    "optim.selector_warmup_epochs": "selector.warmup_epochs", "optim.warmup_views": "selector.warmup_views",
+    "optim.warmup_num_views": "selector.warmup_num_views", "optim.selector_grad": "selector.grad",
+    "optim.smoothed_pairs": "selector.probe_pairs", "optim.smoothed_sigma": "selector.probe_sigma",
+    "optim.smoothed_every": "selector.probe_every", "optim.selector_loss": "selector.loss",
+    "optim.flip_explore": "selector.flip_explore", "optim.flip_epochs": "selector.flip_epochs",
+    "optim.bn_recalibrate": "selector.bn_recalibrate", "optim.bn_recalibrate_scope": "selector.bn_recalibrate_scope",
+    "optim.hypothesis_epochs": "selector.race_epochs", "optim.hypothesis_z": "selector.race_z",
+    "optim.hypothesis_mode": "selector.race_mode", "selector.poi_gain": "selector.gain",
+    "selector.poi_cache": "selector.cache", "selector.poi_learn_gain": "selector.learn_gain",
+    "selector.opt_steps": "selector.steps", "selector.opt_lr": "selector.step_size",
+    "selector.opt_objective": "selector.objective",
+}
+
+
+REGISTRY.moved.update(MOVED)
+moved_message = REGISTRY.moved_message
+option_fields = REGISTRY.keys_of
+
+
+def upgrade(config: dict) -> dict:
+    """A config dict written before one schema per option (checkpoint format < 3) in today's form:
+    moved keys (``MOVED``) at their new place, keys of other options (then ignored) dropped."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in config.items()}
+    sel = out.setdefault("selector", {})
+    for old, new in MOVED.items():
+        group, key = old.split(".")
+        if isinstance(out.get(group), dict) and key in out[group]:
+            sel[new.split(".")[1]] = out[group].pop(key)
+    keep = option_fields(sel.get("name", "mvtn_spherical"))
+    out["selector"] = {k: v for k, v in sel.items() if k in keep}
+    for kind in ("point_encoder", "backbone", "mvnet"):  # one schema per option there too
+        node = out.get(kind)
+        if isinstance(node, dict) and node.get("name") in OPTIONS[kind]:
+            out[kind] = {k: v for k, v in node.items() if k in OPTIONS[kind].keys_of(node["name"])}
+    return out
+
+
+def foreign_key_message(name: str, key: str) -> str:
+    """One line for ``selector.key`` given to ``selector=name``, which has no such key."""
+    return REGISTRY.foreign_key_message(name, key)
