@@ -141,7 +141,9 @@ def test_loader_bench_table():
 def test_prob_cutoff_bench_measures_against_the_default():
     """The cut-off shortcut's table: the default row is the reference (no error, cosine 1); a larger
     cut-off shrinks the blur radius and moves some edge pixels (it is measured, not free)."""
-    from mvtn_exp.bench import prob_cutoff
+    from studies import study
+
+    prob_cutoff = study("prob_cutoff")
     from mvtn_exp.bench.edge_error import torus_mesh
     from mvtn_exp.render.config import RendererConfig
 

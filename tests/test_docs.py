@@ -16,6 +16,8 @@ How a command is checked, without running it (in-process, so the whole file take
 - ``make TARGET``: the target exists in the Makefile.
 - ``python -m MODULE ...``: the module is found (``importlib.util.find_spec``); ``key=value``
   arguments of ``python -m mvtn_exp...`` probes are ``mvtn-train`` overrides and are composed too.
+- ``python scripts/studies/NAME.py ...``: the script exists; its ``key=value`` arguments are
+  ``mvtn-train`` overrides and are composed.
 - Anything else fails unless ``ALLOWED`` below lists it, with the reason; repository paths it names
   must exist.
 
@@ -239,8 +241,13 @@ def check_make(argv, capsys):
 
 
 def check_python(argv, capsys):
+    if argv[:1] and argv[0].startswith("scripts/studies/") and argv[0].endswith(".py"):  # research probes
+        if not (ROOT / argv[0]).is_file():
+            return f"python {argv[0]}: no such script"
+        overrides = [a for a in argv[1:] if "=" in a and not a.startswith("-")]
+        return check_train(overrides, capsys) if overrides else None
     if argv[:1] != ["-m"] or len(argv) < 2:
-        return f"python {' '.join(argv)}: only `python -m MODULE` is checked; list other forms in ALLOWED"
+        return f"python {' '.join(argv)}: only `python -m MODULE` and `python scripts/studies/NAME.py` are checked; list other forms in ALLOWED"
     module = argv[1]
     try:
         found = importlib.util.find_spec(module) is not None
@@ -417,3 +424,24 @@ def test_readme_is_a_manual():
     linked = {(README.parent / t.partition("#")[0]).resolve() for t in LINK.findall(text)}
     unlinked = [p.relative_to(ROOT).as_posix() for p in DOCS if p.resolve() not in linked]
     assert not unlinked, f"README.md does not link {unlinked}"
+
+
+EXPERIMENTS = sorted((ROOT / "mvtn_exp" / "conf" / "experiment").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", EXPERIMENTS, ids=[p.stem for p in EXPERIMENTS])
+def test_experiment_files_carry_a_short_header_naming_where_the_result_is(path):
+    """An experiment file says in at most 5 comment lines what it reproduces and where the result
+    is documented (a docs page that exists); no per-seed logs in its comments."""
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("# @package _global_")
+    header = []
+    for line in lines[1:]:
+        if not line.startswith("#"):
+            break
+        header.append(line)
+    assert 1 <= len(header) <= 5, f"{path.name}: {len(header)} header lines"
+    docs = re.findall(r"docs/[\w/.-]+\.md", " ".join(header))
+    assert docs and all((ROOT / d).is_file() for d in docs), f"{path.name}: names no existing docs page"
+    comments = [ln for ln in lines if ln.lstrip().startswith("#")]
+    assert len(comments) <= 12 and not any(re.search(r"\bseed \d+\b.*\d\.\d{3}", c) for c in comments), path.name

@@ -5,7 +5,11 @@ from pathlib import Path
 
 import torch
 
-from mvtn_exp.bench.grad_quality import LOSSES, SETTINGS, MultiViewRenderer, Probe, Scene, main, random_views, synthetic_meshes
+from studies import study
+
+_gq = study("grad_quality")
+LOSSES, SETTINGS, MultiViewRenderer, Probe, Scene, main, random_views, synthetic_meshes = (
+    _gq.LOSSES, _gq.SETTINGS, _gq.MultiViewRenderer, _gq.Probe, _gq.Scene, _gq.main, _gq.random_views, _gq.synthetic_meshes)
 
 
 def _table(md: str, heading: str) -> list[list[str]]:

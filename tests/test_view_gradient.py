@@ -179,7 +179,9 @@ def test_smoothed_resume_is_exact(tmp_path):
 
 
 def test_view_landscape_reads_a_synthetic_views_run(tmp_path, capsys):
-    from mvtn_exp.bench import view_landscape
+    from studies import study
+
+    view_landscape = study("view_landscape")
 
     cfg = tiny(str(tmp_path / "cache"), views=1, epochs=1, **{"selector.name": "circular"})
     cfg["dataset"] = {"name": "synthetic_views", "root": str(tmp_path / "views"), "num_per_class": [2, 1, 2]}
@@ -204,7 +206,9 @@ def test_axis_views_look_down_the_cup(tmp_path, capsys):
     dataset's own visibility rule), the others 30 degrees around it; poles included."""
     import numpy as np
 
-    from mvtn_exp.bench import axis_views as av
+    from studies import study
+
+    av = study("axis_views")
     from mvtn_exp.data import synthetic_views as sv
 
     ds = sv.SyntheticViews(tmp_path / "views", "test", (2, 1, 2), seed=0, num_points=64, progress=False)
@@ -238,7 +242,9 @@ def test_axis_views_train_through_the_one_trainer(tmp_path, capsys):
     import json
     import warnings
 
-    from mvtn_exp.bench import axis_views as av
+    from studies import study
+
+    av = study("axis_views")
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
@@ -254,7 +260,9 @@ def test_axis_views_train_through_the_one_trainer(tmp_path, capsys):
 def test_tilted_axis_views_keep_their_angle_and_spread_around_the_axis():
     """``axis_views --tilt``: every direction exactly ``tilt`` degrees from its axis (poles too),
     in directions that differ between shapes and between draws."""
-    from mvtn_exp.bench import axis_views as av
+    from studies import study
+
+    av = study("axis_views")
 
     axis = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(0)), dim=1)
     axis = torch.cat([axis, torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])])

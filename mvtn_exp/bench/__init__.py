@@ -2,7 +2,10 @@
 
 * ``memory.PeakMemory``: extra peak memory of a block (CUDA allocator stats, or sampled RSS on CPU).
 * ``dense``: a brute-force dense K=1 face search, the timing reference for ``search_faces``.
-* ``render_bench``: the benchmark grid, Markdown tables and raw JSON.
-* ``grad_quality``: camera gradients (autograd) against central finite differences, per renderer
-  setting, and near the pole (``python -m mvtn_exp.bench.grad_quality``).
+* ``render_bench``: the benchmark grid, Markdown tables and raw JSON; ``modules`` (the paper's
+  module table), ``scaling`` (curves), ``edge_error`` (soft edges against the every-face reference).
+* ``step_ratio``: learned against fixed views per training step; ``loader_bench``: data loading.
+
+The research probes behind ``docs/results`` (axis views, the view landscape, camera-gradient
+quality, ``prob_cutoff``) live in ``scripts/studies/``.
 """

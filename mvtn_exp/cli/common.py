@@ -290,7 +290,7 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
 
 def compose_train_config(overrides: list[str], prog: str = "mvtn-train"):
     """``mvtn-train``'s config from ``overrides``, for entry points that train outside Hydra's app
-    (``bench.axis_views``): a bad key is refused as ``mvtn-train`` refuses it (one line, exit 2)."""
+    (``scripts/studies/axis_views.py``): a bad key is refused as ``mvtn-train`` refuses it (one line, exit 2)."""
     from hydra import compose, initialize_config_module
 
     from ..engine.trainer import as_config

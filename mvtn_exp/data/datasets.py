@@ -96,3 +96,10 @@ def view_figures(dataset, res: dict, run_dir) -> None:
     figures = getattr(dataset, "view_figures", None)
     if figures is not None:
         figures(res, run_dir)
+
+
+def retrieval_report(dataset, q_z, q_y, list_length: int) -> dict:
+    """A dataset's own retrieval metrics of query features ``q_z`` (``dataset.retrieval_report``:
+    ShapeNet's SHREC'17 grading), else ``{}``."""
+    report = getattr(dataset, "retrieval_report", None)
+    return report(q_z, q_y, list_length) if report is not None else {}

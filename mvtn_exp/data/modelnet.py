@@ -195,6 +195,8 @@ class ModelNetMeshes(PackedShapes):
     reasons of the shapes left out of the whole official split.
     """
 
+    val_from_train = True  # the val split is carved out of the official train split (retrieval reunites them)
+
     def __init__(self, root, split: str = "train", cache_dir="outputs/cache/modelnet", num_points: int = 2048,
                  max_vertices: int = 20000, val_fraction: float = 0.1, seed: int = 0, strict: bool = False,
                  as_points: bool = False, progress: bool = True):

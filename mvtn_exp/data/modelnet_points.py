@@ -188,6 +188,8 @@ class ModelNetPoints(Dataset):
     order), ``labels``, ``names``, ``skipped`` (one reason per cloud of this split left out), ``zup``.
     """
 
+    val_from_train = True  # the val split is carved out of the official train split (retrieval reunites them)
+
     def __init__(self, root, split: str = "train", format: str = "normal_resampled", num_points: int = 2048,
                  val_fraction: float = 0.1, seed: int = 0, strict: bool = False, zup: Optional[bool] = None):
         if split not in SPLITS:

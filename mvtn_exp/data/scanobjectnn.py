@@ -90,6 +90,8 @@ class ScanObjectNN(Dataset):
     per cloud of the whole official file left out for NaN/Inf points).
     """
 
+    val_from_train = True  # the val split is carved out of the official train split (retrieval reunites them)
+
     def __init__(self, root, split: str = "train", variant: str = "pb_t50_rs", num_points: int = POINTS,
                  val_fraction: float = 0.1, seed: int = 0, strict: bool = False):
         if split not in SPLITS:

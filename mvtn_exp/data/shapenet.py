@@ -214,6 +214,19 @@ class ShapeNetCore(PackedShapes):
         return item
 
 
+    def retrieval_report(self, q_z: np.ndarray, q_y: np.ndarray, list_length: int) -> dict:
+        """SHREC'17 as the challenge evaluates it: every shape of this split queries the split itself
+        (itself included), features ``q_z [N, D]`` in this dataset's order, graded by sub-synset
+        (None: labelled only at its synset)."""
+        from ..tasks import retrieval
+
+        subs = [None if sub == syn else sub for sub, syn in zip(self.sub_synsets, self.synsets)]
+        shrec = retrieval.shrec17_metrics(q_z, q_y, q_z, q_y, n=list_length, query_sublabels=subs, db_sublabels=subs)
+        out = {k: v for k, v in shrec.items() if k != "per_query"}
+        out["database"] = f"the {self.split} split itself ({len(q_y)} shapes, each query included)"
+        return {"shrec17": out}
+
+
 def _first_duplicate(values) -> str | None:
     seen = set()
     for v in values:

@@ -14,6 +14,7 @@ from torch.utils.data import ConcatDataset
 from tqdm.auto import tqdm
 
 from ..data.datasets import build_dataset
+from ..data.datasets import retrieval_report as dataset_retrieval_report
 from ..schema import EvalConfig, TrainConfig
 from ..tasks import classification, retrieval, robustness
 from ..viz.plots import occlusion_png
@@ -86,16 +87,12 @@ def features(model, loader, progress: bool, desc: str) -> tuple[np.ndarray, np.n
     return torch.cat(feats).numpy().astype(np.float64), torch.cat(labels).numpy()
 
 
-# datasets whose val split is carved out of the official train split (dataset.val_fraction)
-VAL_FROM_TRAIN = ("modelnet40", "scanobjectnn")
-
-
 def retrieval_database(cfg: TrainConfig, progress: bool = True):
     """The retrieval database: the whole official train split. Where the val split was carved out
-    of it (``VAL_FROM_TRAIN``: ModelNet40 gives 9,843 shapes, not the 90% left for training), it is
-    train + val again; elsewhere (synthetic, ShapeNet) the train split."""
+    of it (the dataset's ``val_from_train``: ModelNet40 gives 9,843 shapes, not the 90% left for
+    training), it is train + val again; elsewhere (synthetic, ShapeNet) the train split."""
     train = build_dataset(cfg.dataset, "train", progress=progress)
-    if cfg.dataset.name not in VAL_FROM_TRAIN:
+    if not getattr(train, "val_from_train", False):
         return train
     val = build_dataset(cfg.dataset, "val", progress=progress)
     whole = ConcatDataset([train, val])
@@ -121,14 +118,7 @@ def retrieval_eval(model, cfg: TrainConfig, ecfg: EvalConfig, dataset, run_dir: 
     curves = {name: retrieval.pr_curve(qa, q_y, da, db_y) for name, (qa, da) in
               {"raw features": (q_x, db_x), "LFDA": (q_z, db_z)}.items()}
     retrieval.pr_curve_png(curves, run_dir / "precision_recall.png")
-    if cfg.dataset.name == "shapenet":
-        # SHREC'17 as the challenge evaluates it: every shape of the split queries that same split
-        # (itself included), in the LFDA space; graded by sub-synset (None: labelled only at its synset)
-        subs = [None if sub == syn else sub for sub, syn in zip(dataset.sub_synsets, dataset.synsets)]
-        shrec = retrieval.shrec17_metrics(q_z, q_y, q_z, q_y, n=ecfg.retrieval.list_length,
-                                          query_sublabels=subs, db_sublabels=subs)
-        result["shrec17"] = {k: v for k, v in shrec.items() if k != "per_query"}
-        result["shrec17"]["database"] = f"the {ecfg.split} split itself ({len(q_y)} shapes, each query included)"
+    result.update(dataset_retrieval_report(dataset, q_z, q_y, ecfg.retrieval.list_length))  # ShapeNet: SHREC'17
     result["lfda_seconds"] = time.perf_counter() - t0
     result["queries"], result["database"] = int(len(q_y)), int(len(db_y))
     table = "| space | dim | mAP |\n|---|---|---|\n" + "\n".join(table_rows)

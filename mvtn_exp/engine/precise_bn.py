@@ -1,4 +1,4 @@
-"""Re-estimate C's BatchNorm statistics before each validation (``optim.bn_recalibrate``).
+"""Re-estimate C's BatchNorm statistics before each validation (``selector.bn_recalibrate``).
 
 Why (measured on ``synthetic_views``, learned M = 4, seed 2): validation accuracy fell to exactly
 chance (0.125: one class for every shape) for single epochs while training accuracy kept rising
@@ -8,13 +8,13 @@ checkpoint of that epoch, validation accuracy is 0.417 (loss 1.46). The running 
 the last training batches with momentum 0.1, rendered from G's training-mode views with
 training-time light and colour, while validation renders G's eval-mode views.
 
-So with ``optim.bn_recalibrate=N`` (N > 0) the running statistics of every BatchNorm layer of C
+So with ``selector.bn_recalibrate=N`` (N > 0) the running statistics of every BatchNorm layer of C
 are reset and set to the plain average over the first N batches of the epoch's training order,
 rendered as validation renders them (the whole model in eval mode but C's BatchNorm layers, no
 augmentation, no gradients). G, C's weights and every random stream are untouched; the epoch's
 checkpoint (and so the test) carries the re-estimated statistics.
 
-``optim.bn_recalibrate_scope``: ``all`` lets training go on from the re-estimated statistics,
+``selector.bn_recalibrate_scope``: ``all`` lets training go on from the re-estimated statistics,
 which changes a learned G's trajectory where G's smoothed probes run C in eval mode (measured:
 three runs on ``synthetic_views`` lost the detail they kept without it); ``eval`` keeps them for
 validation, the checkpoints' ``model`` and the test only, and puts training's own running

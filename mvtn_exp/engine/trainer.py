@@ -418,6 +418,37 @@ def test_best(model, cfg: TrainConfig, run_dir: Path, datasets: dict, classes: l
     return best, test, costs
 
 
+def validate(model, ema, dataset, cfg: TrainConfig, num_classes: int, world) -> tuple[dict, dict | None]:
+    """The epoch's validation of the raw weights and (with ``optim.ema_decay``) of their average,
+    with rank 0's BatchNorm statistics on every rank first."""
+    distributed.broadcast_buffers(model, world)
+    if ema is not None:
+        distributed.broadcast_buffers(ema.model, world)
+    val = evaluate_split(model, dataset, cfg, num_classes, "val", world)
+    val_ema = evaluate_split(ema.model, dataset, cfg, num_classes, "val (average)", world) if ema is not None else None
+    return val, val_ema
+
+
+def run_metrics(cfg: TrainConfig, cfg_dict: dict, model, datasets: dict, test: dict, costs: dict, history: list,
+                timer: StepTimer, origin: dict, world, *, best_acc: float, best_epoch: int, step: int, skipped: int,
+                best_weights: str) -> dict:
+    """The run's ``metrics.json``: the test split's results for ``best.pt``, model selection, the
+    per-epoch history, time per stage, the cost record, the config and the provenance."""
+    classes = list(datasets["train"].classes)
+    return {
+        "test_acc": test["acc"], "test_mean_class_acc": test["mean_class_acc"], "test_loss": test["loss"],
+        "test_per_class_acc": dict(zip(classes, test["per_class_acc"])),
+        "confusion_matrix": test["confusion"], "classes": classes, "test_size": test["n"], "split": "test",
+        "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
+        "best_weights": best_weights, "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
+        "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
+        "step_seconds": timer.means(), "cost": costs,
+        **{f"test_{k}": v for k, v in view_report(model, test["azim"], test["elev"]).items()},
+        **{f"test_{k}": v for k, v in dataset_view_report(datasets["test"], test).items()},
+        "history": history, "config": cfg_dict, "provenance": origin, "world_size": world.size,
+    }
+
+
 def train(cfg, run_dir, build_model=None) -> dict:
     """Train MVTN per ``cfg`` (TrainConfig / dict / DictConfig) writing into ``run_dir``; return the metrics.
     ``build_model(cfg, num_classes)``: the model factory (default ``build_mvtn``; diagnostics such as
@@ -484,12 +515,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 for line in g_training.end_epoch(model, epoch):
                     say(run_dir, line)
                 train_bn = g_training.before_validation(model, lambda: train_loader(cfg, datasets["train"], epoch, world))
-                distributed.broadcast_buffers(model, world)  # rank 0's BatchNorm statistics everywhere
-                if ema is not None:
-                    distributed.broadcast_buffers(ema.model, world)
-                val = evaluate_split(model, datasets["val"], cfg, len(classes), "val", world)
-                val_ema = (evaluate_split(ema.model, datasets["val"], cfg, len(classes), "val (average)", world)
-                           if ema is not None else None)
+                val, val_ema = validate(model, ema, datasets["val"], cfg, len(classes), world)
                 sched.step()
                 seconds = time.perf_counter() - t0
                 offsets = view_report(model, val["azim"], val["elev"])
@@ -527,19 +553,9 @@ def train(cfg, run_dir, build_model=None) -> dict:
         logger.close()
         loaders.release(*datasets.values())
 
-    metrics = {
-        "test_acc": test["acc"], "test_mean_class_acc": test["mean_class_acc"], "test_loss": test["loss"],
-        "test_per_class_acc": dict(zip(classes, test["per_class_acc"])),
-        "confusion_matrix": test["confusion"], "classes": classes, "test_size": test["n"], "split": "test",
-        "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
-        "best_weights": "average" if best.get("ema_selected") else "raw",
-        "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
-        "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
-        "step_seconds": timer.means(), "cost": costs,
-        **{f"test_{k}": v for k, v in view_report(model, test["azim"], test["elev"]).items()},
-        **{f"test_{k}": v for k, v in dataset_view_report(datasets["test"], test).items()},
-        "history": history, "config": cfg_dict, "provenance": origin, "world_size": world.size,
-    }
+    metrics = run_metrics(cfg, cfg_dict, model, datasets, test, costs, history, timer, origin, world,
+                          best_acc=best_acc, best_epoch=best_epoch, step=step, skipped=skipped,
+                          best_weights="average" if best.get("ema_selected") else "raw")
     if not world.main:
         return metrics
     view_figures(datasets["test"], test, run_dir)

@@ -1,13 +1,13 @@
 """G's gradient from the task loss itself: a Gaussian-smoothed, antithetic estimate over the views.
 
-``optim.selector_grad=autograd`` (the paper's) trains G through the differentiable renderer:
-dL/du = dL/dimages * dimages/du. ``optim.selector_grad=smoothed`` replaces that by the gradient of
+``selector.grad=autograd`` (the paper's) trains G through the differentiable renderer:
+dL/du = dL/dimages * dimages/du. ``selector.grad=smoothed`` replaces that by the gradient of
 the loss smoothed over the views, estimated from loss *values* at perturbed views:
 
     L_sigma(u) = E_eps L(u + sigma eps),  eps ~ N(0, I) over every view's (azimuth, elevation)
     g(u) = 1 / (2 sigma K) sum_k [L(u + sigma eps_k) - L(u - sigma eps_k)] eps_k   (per degree)
 
-with K antithetic pairs (``optim.smoothed_pairs``) and sigma in degrees (``optim.smoothed_sigma``),
+with K antithetic pairs (``selector.probe_pairs``) and sigma in degrees (``selector.probe_sigma``),
 per shape. G is then trained on ``sum(u * g) / B``, whose gradient with respect to G's parameters
 is ``g`` chained through G, exactly as autograd would chain dL/du. The renderer is not
 differentiated at all, so any renderer works (hard included), and no image gradient is kept.
@@ -17,7 +17,7 @@ axis; 96 test shapes, cameras 20 / 40 / 60 degrees off the axis): the loss rises
 from the axis (0.15 on it, 1.7 at 20, 3.3 at 40 degrees), yet the renderer's camera gradient
 has cosine 0.01 / 0.05 / -0.25 with the direction towards the axis (and still about 0 averaged
 over 12 jittered views), while this estimate with K = 6, sigma = 12 has cosine 0.72 / 0.72 / 0.48
-(towards the axis for 93 / 88 / 80% of the shapes; ``python -m mvtn_exp.bench.view_landscape``).
+(towards the axis for 93 / 88 / 80% of the shapes; ``python scripts/studies/view_landscape.py``).
 
 The perturbed renders run under ``torch.no_grad()`` with the whole model in eval mode (fixed light
 and colour, BatchNorm running statistics, no dropout), so the two sides of a pair differ only in

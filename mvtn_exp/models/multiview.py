@@ -156,6 +156,7 @@ class MVNetConfig(OptionConfig):
     dropout: float = 0.0
 
     kind = "mvnet"
+    any_view_set = True  # C takes any set of views as one shape (raced hypotheses can be pooled)
 
     def validate(self) -> "MVNetConfig":
         super().validate()

@@ -234,6 +234,7 @@ class ViewGCNConfig(MVNetConfig):
 
     name: str = "viewgcn"
     dropout: float = 0.5
+    any_view_set = False  # a graph over the views with its own selection levels
     k: int = 4
     stages: Optional[list[int]] = None
 

@@ -10,14 +10,14 @@ trained on every hypothesis's render of every shape, learns the detail from whic
 
 During the exploring epochs the trainer renders all H x M views, C classifies each hypothesis's
 M views as a shape of its own (so a shape's H renders count as H samples of the batch), and each
-shape's loss under each hypothesis is recorded: G's own loss (``optim.selector_loss``; with the
+shape's loss under each hypothesis is recorded: G's own loss (``selector.loss``; with the
 centered logit a C that ignores the label scores every hypothesis 0 on average, so the race is
 not won by views where C's output is merely flat). At the end of each exploring epoch the
 hypothesis with the lowest mean loss becomes the selector's ``active`` one; validation,
 checkpoints and test use only the active one. Exploration ends, and only the active hypothesis is
-rendered from then on, once it leads every other by more than ``optim.hypothesis_z`` standard
+rendered from then on, once it leads every other by more than ``selector.race_z`` standard
 errors of the paired per-shape differences (the same shapes seen under both: a randomised
-comparison), or after ``optim.hypothesis_epochs`` epochs. The sums are cleared every epoch,
+comparison), or after ``selector.race_epochs`` epochs. The sums are cleared every epoch,
 since C changes. The cost is H x the render and C of a step while exploring.
 """
 from __future__ import annotations

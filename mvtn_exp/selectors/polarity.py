@@ -1,6 +1,6 @@
 """Which side of its axis each learned view looks from: a per-view polarity chosen by trying both.
 
-Why (measured on ``synthetic_views``, ``python -m mvtn_exp.bench.view_landscape --thetas ...``
+Why (measured on ``synthetic_views``, ``python scripts/studies/view_landscape.py --thetas ...``
 on the C of epoch 1 of learned runs): before C can read the class detail, its loss is lowest
 where its predictions are most uniform, which is on the cup axis *from either side*: 2.16 /
 2.19 / 2.22 / 2.21 / 2.23 / 2.18 / 2.14 at 0 / 30 / 60 / 90 / 120 / 150 / 180 degrees from the
@@ -9,8 +9,8 @@ of equal depth that no gradient can tell apart, since only the first shows the d
 has learned it. A G on the losing side never lets C see the detail, so C never learns it and
 the other basin never gets deeper: in 3 of 6 runs G settled behind the cup in the first epochs.
 
-So during the first ``optim.flip_epochs`` epochs each training view is, with probability
-``optim.flip_explore``, rendered from its antipode ``(azim + 180, -elev)`` instead (an
+So during the first ``selector.flip_epochs`` epochs each training view is, with probability
+``selector.flip_explore``, rendered from its antipode ``(azim + 180, -elev)`` instead (an
 independent draw per shape and view). C thereby trains on both sides of G's axis; the shape's
 loss is recorded per view as "kept" or "flipped", and at the end of each of those epochs a view
 whose flipped renders had a lower mean loss than its kept ones, by more than two standard

@@ -26,13 +26,13 @@ def centered_logit_loss(logits: Tensor, labels: Tensor) -> Tensor:
 
 
 def selector_loss_fn(name: str, cfg: TaskConfig):
-    """G's per-shape loss ``(logits [B, K], labels [B]) -> [B]`` for ``optim.selector_loss=name``:
+    """G's per-shape loss ``(logits [B, K], labels [B]) -> [B]`` for ``selector.loss=name``:
     ``task`` (C's own loss, the paper's) or ``centered_logit`` (``centered_logit_loss``)."""
     if name == "task":
         return loss_fn(cfg, reduction="none")
     if name == "centered_logit":
         return centered_logit_loss
-    raise ValueError(f"optim.selector_loss={name!r}: expected task or centered_logit")
+    raise ValueError(f"selector.loss={name!r}: expected task or centered_logit")
 
 
 def summarize(confusion: Tensor) -> dict:

@@ -26,7 +26,7 @@ within +-h shows up as an FD value that grows like 1/h, not as a derivative). At
 +-90 a change of azimuth rotates the image about the view axis, so a large azimuth derivative there
 is real.
 
-Run: ``python -m mvtn_exp.bench.grad_quality`` (Markdown on stdout, JSON under
+Run: ``python scripts/studies/grad_quality.py`` (Markdown on stdout, JSON under
 ``outputs/bench/grad_quality/``); ``--help`` lists the options.
 """
 from __future__ import annotations
@@ -45,11 +45,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..data.mesh_io import normalize_unit_sphere
-from ..data.shapes import Meshes
-from ..render.cameras import Cameras
-from ..render.renderer import MultiViewRenderer
-from .render_bench import _jsonable, md_table
+from mvtn_exp.data.mesh_io import normalize_unit_sphere
+from mvtn_exp.data.shapes import Meshes
+from mvtn_exp.render.cameras import Cameras
+from mvtn_exp.render.renderer import MultiViewRenderer
+from mvtn_exp.bench.render_bench import _jsonable, md_table
 
 SETTINGS = {
     "hard_flat": dict(mode="hard", shading="flat"),
@@ -125,7 +125,7 @@ class Scene:
 def synthetic_meshes(count: int, cache_dir: str | Path, dtype=torch.float64) -> Meshes:
     """The first ``count`` shapes of the synthetic test split with one shape per class (12 classes;
     ``count`` > 12 takes more per class), in the unit sphere, at most 2000 faces each."""
-    from ..data.synthetic import CLASSES, SyntheticShapes
+    from mvtn_exp.data.synthetic import CLASSES, SyntheticShapes
 
     per_class = max(1, math.ceil(count / len(CLASSES)))
     ds = SyntheticShapes(cache_dir, "test", num_per_class=(0, 0, per_class), seed=0, max_faces=2000, progress=False)
@@ -419,7 +419,7 @@ def _floats(text: str) -> tuple[float, ...]:
 
 def parse_args(argv=None) -> tuple[GradOptions, Path]:
     d = GradOptions()
-    p = argparse.ArgumentParser(prog="python -m mvtn_exp.bench.grad_quality", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python scripts/studies/grad_quality.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--size", type=int, default=d.size, help="image size of the synthetic scene and the pole table")
     p.add_argument("--views", type=int, default=d.views, help="views per shape")
     p.add_argument("--shapes", type=int, default=d.shapes, help="synthetic shapes (one per class first)")

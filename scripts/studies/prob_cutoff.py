@@ -11,7 +11,7 @@ reports, for the training setting (soft, smooth shading, K = 8):
 - the cosine between the camera gradient of a fixed random linear loss of the images and the
   default's, and the ratio of their norms.
 
-Run: ``python -m mvtn_exp.bench.prob_cutoff`` (Markdown table on stdout).
+Run: ``python scripts/studies/prob_cutoff.py`` (Markdown table on stdout).
 """
 from __future__ import annotations
 
@@ -21,9 +21,9 @@ import time
 
 import torch
 
-from ..render import layouts
-from ..render.renderer import MultiViewRenderer
-from .edge_error import EDGE_LO, TOL, torus_mesh
+from mvtn_exp.render import layouts
+from mvtn_exp.render.renderer import MultiViewRenderer
+from mvtn_exp.bench.edge_error import EDGE_LO, TOL, torus_mesh
 
 DEFAULT = 1e-4
 

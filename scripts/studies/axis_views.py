@@ -1,10 +1,10 @@
 """Diagnostic ceiling on ``synthetic_views``: C trained and tested with cameras on each shape's cup axis.
 
-``python -m mvtn_exp.bench.axis_views [--out DIR] [mvtn-train overrides ...]`` trains like
+``python scripts/studies/axis_views.py [--out DIR] [mvtn-train overrides ...]`` trains like
 ``mvtn-train`` (same config keys, same run files), except that the M cameras of every shape are
 placed from the dataset's detail frame: view 1 on the cup's axis, views 2..M on a ring
 ``RING_DEG`` degrees around it. It is not a method (the cameras read privileged data); it says how
-well C reads the detail when every view shows it, and gives ``bench.view_landscape`` a C that
+well C reads the detail when every view shows it, and gives ``scripts/studies/view_landscape.py`` a C that
 does. Measured (96 training shapes per class, M = 1, 64 px, soft smooth, camera light, white, 20
 epochs, no augmentation): test accuracy 0.969, validation 0.48 after 2 epochs (README).
 
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import torch
 
-from ..model import MVTN, build_mvtn
-from ..schema import TrainConfig
+from mvtn_exp.model import MVTN, build_mvtn
+from mvtn_exp.schema import TrainConfig
 
 RING_DEG = 30.0
 
@@ -89,10 +89,10 @@ def build_axis_model(cfg: TrainConfig, num_classes: int, tilt: float = 0.0) -> A
 
 
 def main(argv=None) -> None:
-    from ..cli.common import compose_train_config
-    from ..engine.trainer import train
+    from mvtn_exp.cli.common import compose_train_config
+    from mvtn_exp.engine.trainer import train
 
-    p = argparse.ArgumentParser(prog="python -m mvtn_exp.bench.axis_views", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python scripts/studies/axis_views.py", description=__doc__.splitlines()[0])
     p.add_argument("--out", default=None, help="run folder (default outputs/bench/axis_views/<time>-<pid>)")
     p.add_argument("--tilt", type=float, default=0.0,
                    help="degrees off the axis, in a random direction drawn anew per batch (default 0)")
@@ -105,7 +105,7 @@ def main(argv=None) -> None:
         if cfg.dataset.name != "synthetic_views":
             raise ValueError(f"dataset={cfg.dataset.name}: axis views need dataset=synthetic_views (the detail frame)")
         if cfg.selector.learned:  # the views come from the axis; no G to train
-            from ..selectors.fixed import SphericalConfig
+            from mvtn_exp.selectors.fixed import SphericalConfig
 
             cfg.selector = SphericalConfig(distance=cfg.selector.distance)
         out = Path(args.out or f"outputs/bench/axis_views/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}")

@@ -1,6 +1,6 @@
 """Does G's gradient point to where C reads the class? The loss landscape around the detail of ``synthetic_views``.
 
-``python -m mvtn_exp.bench.view_landscape RUN_DIR`` loads a run trained on ``synthetic_views``
+``python scripts/studies/view_landscape.py RUN_DIR`` loads a run trained on ``synthetic_views``
 (``RUN_DIR/best.pt``), puts one camera per test shape at ``theta`` degrees from the shape's cup
 axis (in a random direction around it), and reports per theta: C's loss and accuracy there, and
 how well a descent step on G's views would turn the camera towards the axis, for
@@ -24,12 +24,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..data.collate import collate_shapes
-from ..data.synthetic_views import view_angles
-from ..engine import checkpoint, view_gradient
-from ..engine.trainer import as_config, make_datasets
-from ..model import build_mvtn
-from ..tasks import classification
+from mvtn_exp.data.collate import collate_shapes
+from mvtn_exp.data.synthetic_views import view_angles
+from mvtn_exp.engine import checkpoint, view_gradient
+from mvtn_exp.engine.trainer import as_config, make_datasets
+from mvtn_exp.model import build_mvtn
+from mvtn_exp.tasks import classification
 
 
 def camera_move(azim: np.ndarray, elev: np.ndarray, g_azim: np.ndarray, g_elev: np.ndarray) -> np.ndarray:
@@ -100,7 +100,7 @@ def landscape(run_dir, thetas=(0, 20, 40, 60), shapes: int = 96, pairs: int = 6,
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(prog="python -m mvtn_exp.bench.view_landscape", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python scripts/studies/view_landscape.py", description=__doc__.splitlines()[0])
     p.add_argument("run_dir", help="a run trained on synthetic_views (reads RUN_DIR/best.pt)")
     p.add_argument("--shapes", type=int, default=96)
     p.add_argument("--pairs", type=int, default=6, help="antithetic pairs of the smoothed estimate")
