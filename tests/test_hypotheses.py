@@ -8,7 +8,7 @@ import torch
 
 from mvtn_exp.engine import checkpoint, train
 from mvtn_exp.engine.trainer import as_config
-from mvtn_exp.selectors import build_selector
+from mvtn_exp.selectors import PointOfInterestSelector, build_selector
 from mvtn_exp.selectors.hypotheses import HypothesisRace, join_views, split_images, split_views
 
 from test_train_e2e import tiny
@@ -21,7 +21,7 @@ def direction(azim, elev):
 
 def test_poi_hypotheses_start_apart_and_the_active_one_is_the_output():
     torch.manual_seed(0)
-    sel = build_selector("mvtn_poi", 2, hypotheses=3).eval()
+    sel = build_selector("mvtn_poi", 2, hypotheses=3, race_epochs=1).eval()
     pts = torch.randn(4, 80, 3) * torch.tensor([1.0, 0.6, 0.3])
     a0, e0, _ = sel.initial_views(1, all_hypotheses=True)
     assert a0.shape == (1, 6)
@@ -43,6 +43,8 @@ def test_poi_hypotheses_start_apart_and_the_active_one_is_the_output():
     one = build_selector("mvtn_poi", 2)  # one hypothesis: no buffer, the old layout and checkpoints
     assert "active" not in one.state_dict()
     with pytest.raises(ValueError, match="hypotheses must be >= 1"):
+        PointOfInterestSelector(2, hypotheses=0)
+    with pytest.raises(ValueError, match="selector.hypotheses=0: must be >= 1"):
         build_selector("mvtn_poi", 2, hypotheses=0)
 
 

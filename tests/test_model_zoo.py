@@ -17,7 +17,7 @@ from mvtn_exp.models.multiview import MULTIVIEW, build_multiview
 from mvtn_exp.models.point_encoders import POINT_ENCODERS, build_point_encoder
 from mvtn_exp.models.view_transformer import ViewTransformer
 from mvtn_exp.schema import EvalConfig
-from mvtn_exp.selectors import build_selector
+from mvtn_exp.selectors import NoisySelector, build_selector
 
 from conftest import tiny_config
 
@@ -146,7 +146,7 @@ def test_feature_dims_table_matches_the_backbones():
 def test_noisy_views_are_the_layout_plus_fresh_noise_in_training_only():
     pts = torch.zeros(4000, 8, 3)
     for layout in ("circular", "spherical"):
-        sel = build_selector("noisy", 4, layout=layout)
+        sel = build_selector("noisy", 4, base_layout=layout)
         base = build_selector(layout, 4)(pts)
         sel.eval()
         for a, b in zip(sel(pts), base):
@@ -166,9 +166,13 @@ def test_noisy_views_are_the_layout_plus_fresh_noise_in_training_only():
 
 def test_noisy_selector_bad_settings():
     with pytest.raises(ValueError, match="layout='random'"):
-        build_selector("noisy", 4, layout="random")
+        NoisySelector(4, layout="random")
     with pytest.raises(ValueError, match="std must be >= 0"):
-        build_selector("noisy", 4, azim_std=-1.0)
+        NoisySelector(4, azim_std=-1.0)
+    with pytest.raises(ValueError, match="selector.base_layout='random'"):
+        build_selector("noisy", 4, base_layout="random")
+    with pytest.raises(ValueError, match=r"selector.noise_azim=-1.0: must be >= 0"):
+        build_selector("noisy", 4, noise_azim=-1.0)
 
 
 # --------------------------------------------------------------------------- every registered component

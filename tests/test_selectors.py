@@ -15,7 +15,7 @@ def clouds(B=3, N=32, seed=0, dtype=torch.float32):
 
 def test_registry_names():
     assert set(SELECTORS) == set(FIXED + LEARNED)
-    allowed = ("allowed: circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, noisy, optimized, poi, "
+    allowed = ("expected one of circular, mvtn_circular, mvtn_direct, mvtn_direct_offset, mvtn_poi, mvtn_spherical, noisy, optimized, poi, "
                "random, spherical")
     with pytest.raises(ValueError, match=allowed):
         build_selector("mvtn_free", 4)
