@@ -193,8 +193,20 @@ def test_help_lists_this_projects_groups_and_keys():
     assert "mvtn_spherical*" in groups["selector"] and "mvtn_direct" in groups["selector"]
     assert "evaluate" not in groups and "hydra" not in groups  # not choosable from mvtn-train
     assert "augment.{rotate}" in out and "views=4" in out
+    assert "selector.{name,distance" in out and "gain" not in out.split("selector.{", 1)[1].split("}")[0]
     v = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.eval", "--version"], capture_output=True, text=True, timeout=60)
     assert v.returncode == 0 and v.stdout.startswith("mvtn-eval (mvtn-exp) ")
+
+
+def test_help_lists_the_keys_of_the_options_chosen_on_the_command_line(capsys):
+    """``selector=poi mvnet=viewgcn --help``: the keys of those options, not of the defaults."""
+    with pytest.raises(SystemExit) as e:
+        check_overrides("mvtn-train", "train", TrainConfig, ["selector=poi", "mvnet=viewgcn", "--help"])
+    out = capsys.readouterr().out
+    assert e.value.code == 0
+    sel = out.split("selector.{", 1)[1].split("}")[0].split(",")
+    assert "gain" in sel and "race_epochs" in sel and "regressor" not in sel
+    assert "mvnet.{name,dropout,k,stages}" in out and "poi*" in out
 
 
 def test_tradeoff_study_grid_composes_and_compares_fixed_with_learned():

@@ -191,22 +191,31 @@ def mark_failed(run_dir: Path, status: str, error: str) -> None:
         pass  # an unwritable run dir: the message on stderr is all there is
 
 
-def project_help(prog: str, config_name: str, schema, config_module: str = CONF_MODULE) -> str:
-    """This project's ``--help``: the command, its config groups and options (defaults marked *),
-    and the keys of its schema with their defaults."""
+def project_help(prog: str, config_name: str, schema, config_module: str = CONF_MODULE,
+                 overrides: Optional[list] = None) -> str:
+    """This project's ``--help``: the command, its config groups and options (defaults marked *, or
+    the options chosen in ``overrides``), and the keys of the composed config (a group's keys are
+    those of its chosen option: ``selector=poi --help`` lists poi's)."""
     from hydra import compose, initialize_config_module
 
     from ..engine.provenance import package_version
 
     conf = package_conf(config_module)
+    groups_only = [o for o in (overrides or []) if "=" in o and "." not in o.split("=", 1)[0]
+                   and not o.startswith("-")]
+    composed = None
     with initialize_config_module(version_base="1.3", config_module=config_module):
-        chosen = _choices(compose, config_name, [])
+        chosen = _choices(compose, config_name, groups_only)
+        try:
+            composed = compose(config_name, overrides=groups_only)
+        except Exception:
+            composed = None
     groups = sorted(d.name for d in conf.iterdir() if d.is_dir() and d.name not in NOT_GROUPS)
     lines = [f"{prog} (mvtn-exp {package_version()}): {DESCRIPTIONS.get(prog, '')}", "",
              f"usage: {prog} " + ("[group=option ...] " if groups else "") + "[key=value ...]"
              + (" [-m key=a,b ...]" if prog == "mvtn-train" else ""), ""]
     if groups:
-        lines.append("Config groups (group=option; * = default; experiment: +experiment=NAME):")
+        lines.append("Config groups (group=option; * = default, or chosen on this command line; experiment: +experiment=NAME):")
         for g in groups:
             opts = sorted(f.stem for f in (conf / g).glob("*.yaml"))
             lines.append(f"  {g:<14} " + ", ".join(o + ("*" if chosen.get(g) == o else "") for o in opts))
@@ -215,7 +224,10 @@ def project_help(prog: str, config_name: str, schema, config_module: str = CONF_
     flat, nested = [], []
     for f in dataclasses.fields(schema):
         default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-        if dataclasses.is_dataclass(default):
+        node = composed.get(f.name) if composed is not None else None
+        if dataclasses.is_dataclass(default) and hasattr(node, "keys"):
+            nested.append(f"  {f.name}." + "{" + ",".join(str(k) for k in node.keys()) + "}")
+        elif dataclasses.is_dataclass(default):
             nested.append(f"  {f.name}." + "{" + ",".join(x.name for x in dataclasses.fields(default)) + "}")
         else:
             flat.append(f"{f.name}={'???' if default is dataclasses.MISSING else default}")
@@ -236,7 +248,7 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
         print(f"{prog} (mvtn-exp) {package_version()}")
         sys.exit(0)
     if "--help" in argv or "-h" in argv:
-        print(project_help(prog, config_name, schema, config_module))
+        print(project_help(prog, config_name, schema, config_module, overrides=argv))
         sys.exit(0)
     info = [a for a in argv if a in HYDRA_INFO_FLAGS or a.split("=")[0] in HYDRA_INFO_FLAGS]
     if info and any(a in MULTIRUN_FLAGS for a in argv):
