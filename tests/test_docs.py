@@ -244,7 +244,8 @@ def check_python(argv, capsys):
     if argv[:1] and argv[0].startswith("scripts/studies/") and argv[0].endswith(".py"):  # research probes
         if not (ROOT / argv[0]).is_file():
             return f"python {argv[0]}: no such script"
-        overrides = [a for a in argv[1:] if "=" in a and not a.startswith("-")]
+        args = [a for i, a in enumerate(argv[1:]) if not (i and argv[i].startswith("--") and "=" not in argv[i])]
+        overrides = [a for a in args if "=" in a and not a.startswith("-")]  # --flag VALUE: the flag's value
         return check_train(overrides, capsys) if overrides else None
     if argv[:1] != ["-m"] or len(argv) < 2:
         return f"python {' '.join(argv)}: only `python -m MODULE` and `python scripts/studies/NAME.py` are checked; list other forms in ALLOWED"
