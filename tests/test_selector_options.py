@@ -68,6 +68,12 @@ def test_old_checkpoint_configs_are_upgraded():
     poi = upgrade({"selector": {"name": "mvtn_poi", "poi_gain": 32.0, "opt_lr": 50.0},
                    "optim": {"hypothesis_epochs": 8, "selector_grad": "smoothed"}})
     assert poi["selector"] == {"name": "mvtn_poi", "gain": 32.0, "race_epochs": 8, "grad": "smoothed"}
+    flat = {"mvnet": {"name": "viewgcn", "pool": "max", "dropout": 0.5, "blocks": 2, "heads": 4, "width": None,
+                      "mlp_ratio": 2.0, "k": 4, "stages": None},
+            "point_encoder": {"name": "pointnet", "features": 40, "use_tnet": False, "k": 20, "emb_dims": 1024}}
+    nets = upgrade(flat)  # the flat schemas of format 2: each option keeps its own keys
+    assert nets["mvnet"] == {"name": "viewgcn", "dropout": 0.5, "k": 4, "stages": None}
+    assert nets["point_encoder"] == {"name": "pointnet", "features": 40, "use_tnet": False}
 
 
 # ----------------------------------------------------------------------------- a new selector, here only
