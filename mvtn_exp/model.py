@@ -8,7 +8,6 @@ from torch import nn
 
 from .data.shapes import PointClouds
 from .models.precision import autocast
-from .models.multiview import build_multiview
 from .render.renderer import MultiViewRenderer
 from .schema import SHAPES, TrainConfig
 from .selectors.hypotheses import HypothesisRace
@@ -100,8 +99,7 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
     C is built first and G's initialisation draws from a forked RNG, so that at the same seed C's
     initial weights and every later random draw (order, light, colour) are the same whichever
     selector is chosen: fixed and learned views are compared on equal terms."""
-    mvnet = build_multiview(cfg.mvnet.name, cfg.backbone.name, num_classes, weights=cfg.backbone.weights,
-                            **cfg.mvnet.kwargs())
+    mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=cfg.backbone.weights)
     with torch.random.fork_rng(devices=[]):
         selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder)
     model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,

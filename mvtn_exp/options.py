@@ -96,12 +96,6 @@ def load(kind: Optional[str] = None) -> None:
             importlib.import_module(f"{package}.{info.name}")
 
 
-def option_of(cls: type) -> Optional[tuple[str, str]]:
-    """``(kind, name)`` of a registered config class, e.g. from a schema error's class name."""
-    load()
-    return next(((k, n) for k, reg in OPTIONS.items() for n, c in reg.items() if c is cls), None)
-
-
 @dataclass
 class OptionConfig:
     """What every option's config has: ``name`` (chosen with ``<kind>=NAME``), ``validate()`` (its

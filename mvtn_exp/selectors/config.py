@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar, Optional
 
 from ..checks import at_least, fraction, one_of
-from ..options import OPTIONS, OptionConfig
+from ..options import OPTIONS, OptionConfig, load
 from ..render.layouts import SPHERES
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -216,8 +216,6 @@ MOVED = {
 
 
 REGISTRY.moved.update(MOVED)
-moved_message = REGISTRY.moved_message
-option_fields = REGISTRY.keys_of
 
 
 def upgrade(config: dict) -> dict:
@@ -229,15 +227,10 @@ def upgrade(config: dict) -> dict:
         group, key = old.split(".")
         if isinstance(out.get(group), dict) and key in out[group]:
             sel[new.split(".")[1]] = out[group].pop(key)
-    keep = option_fields(sel.get("name", "mvtn_spherical"))
-    out["selector"] = {k: v for k, v in sel.items() if k in keep}
-    for kind in ("point_encoder", "backbone", "mvnet"):  # one schema per option there too
+    load()
+    for kind in OPTIONS:  # each option keeps its own keys
         node = out.get(kind)
-        if isinstance(node, dict) and node.get("name") in OPTIONS[kind]:
-            out[kind] = {k: v for k, v in node.items() if k in OPTIONS[kind].keys_of(node["name"])}
+        name = node.get("name", "mvtn_spherical" if kind == "selector" else None) if isinstance(node, dict) else None
+        if name in OPTIONS[kind]:
+            out[kind] = {k: v for k, v in node.items() if k in OPTIONS[kind].keys_of(name)}
     return out
-
-
-def foreign_key_message(name: str, key: str) -> str:
-    """One line for ``selector.key`` given to ``selector=name``, which has no such key."""
-    return REGISTRY.foreign_key_message(name, key)

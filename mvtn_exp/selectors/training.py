@@ -2,7 +2,8 @@
 
 A selector config's ``training()`` names the class; the trainer builds it once per run and calls
 
-- ``param_group(params)`` / ``lr_scale(epoch)`` / ``clip``: G's AdamW group (only if G has parameters);
+- ``param_group(params)`` / ``clip``: G's AdamW group (only if G has parameters; its schedule
+  multiplier is the selector config's ``lr_scale``);
 - ``start_epoch(model, epoch, g_lr, hold_views)`` before an epoch's first step (``hold_views``:
   the multi-view net asks for G's initial views this epoch, e.g. ViewGCN's single-view stage);
 - ``train_step(model, batch, step, loss_fn, timer) -> Step`` for every training batch: the forward
@@ -51,9 +52,6 @@ class SelectorTraining:
 
     def param_group(self, params: list) -> dict:
         raise ValueError(f"selector={self.s.name}: a fixed selector has no parameters to train")
-
-    def lr_scale(self, epoch: int) -> float:
-        return 1.0
 
     def start_epoch(self, model, epoch: int, g_lr: Optional[float], hold_views: bool) -> None:
         """Called before the first step of 0-based ``epoch``; ``g_lr``: G's learning rate now."""
@@ -104,9 +102,6 @@ class LearnedTraining(SelectorTraining):
 
     def param_group(self, params: list) -> dict:
         return {"params": params, "lr": self.s.lr, "name": "selector", "betas": (self.s.beta1, 0.999)}
-
-    def lr_scale(self, epoch: int) -> float:
-        return self.s.lr_scale(epoch)
 
     def start_epoch(self, model, epoch: int, g_lr: Optional[float], hold_views: bool) -> None:
         trains = bool(model.parameter_groups()["selector"])
