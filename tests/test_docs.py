@@ -12,7 +12,7 @@ How a command is checked, without running it (in-process, so the whole file take
 - ``mvtn-prepare`` composes ``conf/prepare.yaml`` the same way; ``mvtn-eval`` ``conf/evaluate/eval.yaml``
   (validated by ``EvalConfig.validate``); ``mvtn-render`` ``conf/render.yaml`` (layout and renderer
   settings validated as ``render_file`` does); ``mvtn-bench`` ``conf/bench.yaml`` (its threads check);
-  ``mvtn-tradeoff`` takes one folder.
+  ``mvtn-tradeoff`` takes one folder; ``mvtn-compare`` its own parser, and with ``--run`` every side composed as ``mvtn-train`` does.
 - ``make TARGET``: the target exists in the Makefile.
 - ``python -m MODULE ...``: the module is found (``importlib.util.find_spec``); ``key=value``
   arguments of ``python -m mvtn_exp...`` probes are ``mvtn-train`` overrides and are composed too.
@@ -230,6 +230,21 @@ def check_tradeoff(argv, capsys):
     return None
 
 
+def check_compare(argv, capsys):
+    """mvtn-compare's own parser; with --run, every side's overrides (with the common ones) as mvtn-train composes them."""
+    from mvtn_exp.cli.compare import build_parser
+
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit:
+        return capsys.readouterr().err.strip() or "mvtn-compare: bad arguments"
+    for side in args.run or []:
+        problem = check_train([*args.items, *side.split()], capsys)
+        if problem:
+            return problem
+    return None
+
+
 def makefile_targets() -> set[str]:
     return set(re.findall(r"^([A-Za-z0-9_.-]+):", (ROOT / "Makefile").read_text(), flags=re.M))
 
@@ -264,7 +279,7 @@ def check_python(argv, capsys):
 
 CHECKS = {"mvtn-train": check_train, "mvtn-prepare": lambda a, c: check_train(a, c, "mvtn-prepare", "prepare"),
           "mvtn-eval": check_eval, "mvtn-render": check_render, "mvtn-bench": check_bench,
-          "mvtn-tradeoff": check_tradeoff, "make": check_make, "python": check_python}
+          "mvtn-tradeoff": check_tradeoff, "mvtn-compare": check_compare, "make": check_make, "python": check_python}
 ENV_ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
 
 

@@ -1,0 +1,371 @@
+"""Paired comparisons over seeds: the numbers behind every "A beats B" of the project (``mvtn-compare``).
+
+Reads every run below the given folders (a run dir: ``metrics.json`` when it finished,
+``status.json`` when it failed, else only its ``.hydra/config.yaml``), sorts the finished runs into
+*sides* (one configuration each, runs differing only in ``seed``) and compares every side with the
+reference side (the first) on the seeds both have:
+
+- per seed: each side's value of the metric (``test_acc`` by default; ``best_val_acc`` to choose
+  a recipe on validation);
+- per side: mean +- sample std (n - 1) over the seeds;
+- per side against the reference: the mean paired difference in points with its 95% paired-t
+  interval (Student's t with n - 1 degrees of freedom on the per-seed differences) and on how many
+  seeds the side is ahead, tied and behind.
+
+A comparison is refused (``CompareError``, one line naming the key) when the two sides differ in
+data, split or epochs (``PROTECTED``) unless that key is named as the one under comparison, when
+their seeds differ (and no unfinished run explains it), or when fewer than 2 seeds are common.
+Keys that say where or how a run ran (``RUN_LOCAL``: device, threads, paths, ...) never make a
+difference.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+from scipy import stats
+
+from .sweep import STATUS_FILE
+
+RUN_LOCAL = ("seed", "device", "ckpt_path", "threads", "logger", "paths", "dataset.root", "dataset.cache_dir",
+             "dataset.num_workers")
+PROTECTED = ("dataset", "epochs")  # data, its splits and the training length
+
+
+class CompareError(ValueError):
+    """A comparison that cannot be made as asked (mismatched sides, too few seeds, nothing to read)."""
+
+
+@dataclass
+class Run:
+    """One run dir: ``status`` ok | failed | incomplete; ``settings``: its config, flattened to
+    dotted keys, without ``RUN_LOCAL`` keys (None when no config could be read)."""
+
+    path: Path
+    status: str
+    seed: int | None = None
+    settings: dict | None = None
+    metrics: dict = field(default_factory=dict)
+    commit: str | None = None
+    error: str = ""
+
+
+def flatten(node, prefix: str = "") -> dict:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (lists stay values)."""
+    out = {}
+    for k, v in node.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        out.update(flatten(v, key) if isinstance(v, dict) and v else {key: v})
+    return out
+
+
+def _local(key: str) -> bool:
+    return any(key == p or key.startswith(p + ".") for p in RUN_LOCAL)
+
+
+def _read_run(path: Path) -> Run:
+    """The record of one run dir."""
+    metrics_file, status_file = path / "metrics.json", path / STATUS_FILE
+    config, metrics, status, error = None, {}, "incomplete", ""
+    try:
+        if metrics_file.is_file():
+            metrics = json.loads(metrics_file.read_text())
+            config, status = metrics.get("config"), "ok"
+        else:
+            if status_file.is_file():
+                st = json.loads(status_file.read_text())
+                status, error = str(st.get("status", "failed")), str(st.get("error", ""))
+            hydra_cfg = path / ".hydra" / "config.yaml"
+            if hydra_cfg.is_file():
+                config = yaml.safe_load(hydra_cfg.read_text())
+    except (OSError, ValueError, yaml.YAMLError) as exc:
+        return Run(path, "unreadable", error=str(exc))
+    if not isinstance(config, dict):
+        return Run(path, status if status != "ok" else "unreadable", error=error or "no config in its record")
+    flat = flatten(config)
+    prov = metrics.get("provenance") or {}
+    commit = (prov["commit"][:7] + ("+dirty" if prov.get("dirty") else "")) if prov.get("commit") else None
+    return Run(path, status, seed=flat.get("seed"), settings={k: v for k, v in flat.items() if not _local(k)},
+               metrics=metrics, commit=commit, error=error)
+
+
+def find_runs(folders) -> list[Run]:
+    """Every run dir at or below ``folders`` (in the order given, paths sorted within each)."""
+    runs, seen = [], set()
+    for folder in folders:
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise CompareError(f"{folder}: no such folder")
+        marks = [p.parent for name in ("metrics.json", STATUS_FILE) for p in folder.rglob(name)]
+        marks += [p.parent for p in folder.rglob(".hydra") if p.is_dir()]
+        for path in sorted(set(marks)):
+            if path.resolve() not in seen and ".hydra" not in path.parts:
+                seen.add(path.resolve())
+                runs.append(_read_run(path))
+    return runs
+
+
+def parse_condition(text: str) -> dict:
+    """``"selector.name=poi views=1"`` -> ``{"selector.name": "poi", "views": 1}`` (values read as YAML)."""
+    out = {}
+    for part in text.split():
+        key, eq, value = part.partition("=")
+        if not eq or not key:
+            raise CompareError(f"--where {text!r}: expected KEY=VALUE pairs separated by spaces, got {part!r}")
+        if key.lstrip("+") == "seed":
+            raise CompareError(f"--where {text!r}: seed is what runs are paired on, not a side's condition")
+        out[key.lstrip("+")] = yaml.safe_load(value)
+    return out
+
+
+def _matches(settings: dict, condition: dict) -> bool:
+    """``selector=poi`` reads as ``selector.name=poi`` (a group's option)."""
+    return all(settings.get(k if k in settings else f"{k}.name", "<absent>") == v for k, v in condition.items())
+
+
+def _show(v) -> str:
+    return json.dumps(v, separators=(",", ":")) if isinstance(v, (list, dict)) else str(v)
+
+
+def differing(a: dict, b: dict) -> list[str]:
+    """Keys whose values differ between two flattened settings (a key missing on one side differs)."""
+    return sorted(k for k in set(a) | set(b) if a.get(k, "<absent>") != b.get(k, "<absent>"))
+
+
+def _protected(key: str, allowed) -> bool:
+    under = any(key == p or key.startswith(p + ".") for p in PROTECTED)
+    return under and not any(key == k or key.startswith(k + ".") for k in allowed)
+
+
+@dataclass
+class Side:
+    label: str
+    settings: dict
+    runs: dict = field(default_factory=dict)  # seed -> finished Run
+    unfinished: list = field(default_factory=list)
+
+
+def _label(settings: dict, keys: list[str]) -> str:
+    """The side's values of the keys that differ between sides: an option's name stands for its
+    own keys (``selector.name=poi``, not every ``selector.*``)."""
+    names = [k for k in keys if k.endswith(".name")]
+    owners = tuple(k[: -len("name")] for k in names)
+    shown = names + [k for k in keys if k not in names and not k.startswith(owners)]
+    text = " ".join(f"{k}={_show(settings.get(k, '-'))}" for k in shown[:3])
+    return text + (" ..." if len(shown) > 3 else "") if text else "(defaults)"
+
+
+def _by_option(keys: list[str]) -> list[str]:
+    """Differing keys, an option whose name differs shown once as ``selector.*``."""
+    owners = tuple(k[: -len("name")] for k in keys if k.endswith(".name"))
+    return [f"{o}*" for o in owners] + [k for k in keys if not k.startswith(owners)]
+
+
+def _add(side: Side, run: Run) -> None:
+    if run.status != "ok":
+        side.unfinished.append(run)
+    elif run.seed in side.runs:
+        raise CompareError(f"seed={run.seed}: two finished runs of side '{side.label}' ({side.runs[run.seed].path}, "
+                           f"{run.path}); pass the folders of one of them")
+    else:
+        side.runs[run.seed] = run
+
+
+def make_sides(runs: list[Run], where: list[str] | None = None, group: str | None = None,
+               reference: str | None = None) -> dict:
+    """``{group value: [Side, ...]}``: runs sorted into sides, by ``where`` conditions (one side
+    each, in their order) or, without them, one side per distinct configuration (first seen first;
+    the one matching the ``reference`` condition first of all)."""
+    readable = [r for r in runs if r.settings is not None]
+    if not any(r.status == "ok" for r in readable):
+        raise CompareError(f"no finished run (a run dir with metrics.json) among the {len(runs)} found")
+    groups: dict = {}
+    for r in readable:
+        groups.setdefault(r.settings.get(group) if group else None, []).append(r)
+
+    def key_of(settings: dict) -> tuple:
+        return tuple(sorted((k, _show(v)) for k, v in settings.items() if k != group))
+
+    ref = parse_condition(reference) if reference else None
+    rank = {}
+    for r in sorted(readable, key=lambda r: not (ref and _matches(r.settings, ref))):
+        rank.setdefault(key_of(r.settings), len(rank))
+    out = {}
+    for g, members in groups.items():
+        sides: dict = {}
+        if where:
+            conditions = [parse_condition(w) for w in where]
+            for r in members:
+                hit = [i for i, c in enumerate(conditions) if _matches(r.settings, c)]
+                if len(hit) > 1:
+                    raise CompareError(f"{r.path}: matches --where {where[hit[0]]!r} and {where[hit[1]]!r}; "
+                                       "make the conditions exclusive")
+                if hit:
+                    sides.setdefault(hit[0], []).append(r)
+            order = [i for i in range(len(where)) if i in sides]
+        else:
+            for r in members:
+                sides.setdefault(key_of(r.settings), []).append(r)
+            order = sorted(sides, key=rank.get)
+        built = []
+        finished = {i: [r for r in sides[i] if r.status == "ok"] for i in order}
+        reference_settings = {i: finished[i][0].settings if finished[i] else sides[i][0].settings for i in order}
+        keys = sorted({k for i in order for j in order for k in differing(reference_settings[i], reference_settings[j])
+                       if k != group})
+        for i in order:
+            ok = finished[i]
+            if where and ok:
+                for r in ok[1:]:
+                    diff = [k for k in differing(ok[0].settings, r.settings) if k != group]
+                    if diff:
+                        raise CompareError(f"--where {where[i]!r}: its runs differ in {diff[0]} ({_show(ok[0].settings.get(diff[0]))} "
+                                           f"in {ok[0].path}, {_show(r.settings.get(diff[0]))} in {r.path}); add {diff[0]}=... "
+                                           f"to the condition{' or --group ' + diff[0] if not group else ''}")
+            side = Side(where[i] if where else _label(reference_settings[i], keys), reference_settings[i])
+            for r in sides[i]:
+                _add(side, r)
+            built.append(side)
+        out[g] = built
+    return out
+
+
+def paired(ref: list[float], other: list[float]) -> dict:
+    """Paired statistics of ``other - ref`` (same seeds, same order): mean, sample std, the 95%
+    paired-t interval and the counts of seeds ahead / tied / behind."""
+    d = [b - a for a, b in zip(ref, other)]
+    n, mean = len(d), sum(d) / len(d)
+    sd = math.sqrt(sum((x - mean) ** 2 for x in d) / (n - 1))
+    half = float(stats.t.ppf(0.975, n - 1)) * sd / math.sqrt(n)
+    return {"diff": mean, "diff_sd": sd, "low": mean - half, "high": mean + half,
+            "ahead": sum(x > 0 for x in d), "tied": sum(x == 0 for x in d), "behind": sum(x < 0 for x in d)}
+
+
+def mean_sd(x: list[float]) -> tuple[float, float]:
+    m = sum(x) / len(x)
+    return m, (math.sqrt(sum((v - m) ** 2 for v in x) / (len(x) - 1)) if len(x) > 1 else 0.0)
+
+
+def _value(run: Run, metric: str) -> float:
+    v = run.metrics.get(metric)
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        raise CompareError(f"{run.path / 'metrics.json'}: no number under {metric!r} "
+                           f"(numbers there: {', '.join(k for k, x in run.metrics.items() if isinstance(x, (int, float)))})")
+    return float(v)
+
+
+def _check_pair(ref: Side, side: Side, allowed, group_text: str) -> list[str]:
+    diff = differing(ref.settings, side.settings)
+    bad = [k for k in diff if _protected(k, allowed)]
+    if bad:
+        k = bad[0]
+        raise CompareError(f"{k}: '{ref.label}' has {_show(ref.settings.get(k, '(absent)'))}, '{side.label}' has "
+                           f"{_show(side.settings.get(k, '(absent)'))}{group_text}: the sides differ in data, split or "
+                           f"epochs; pass --key {k} if that is the key under comparison")
+    return diff
+
+
+def _common_seeds(ref: Side, side: Side, group_text: str) -> tuple[list, list]:
+    a, b = set(ref.runs), set(side.runs)
+    unfinished = {r.seed for r in ref.unfinished + side.unfinished}
+    if a != b and not (a ^ b) <= unfinished:
+        raise CompareError(f"seed: '{ref.label}' has seeds {_seeds(a)}, '{side.label}' has {_seeds(b)}{group_text}; "
+                           "run the same seeds on both sides")
+    common = sorted(a & b)
+    if len(common) < 2:
+        raise CompareError(f"seed: '{ref.label}' and '{side.label}'{group_text} share {len(common)} finished seed(s) "
+                           f"({_seeds(set(common)) or 'none'}); a paired comparison needs at least 2")
+    return common, sorted(a ^ b)
+
+
+def _seeds(s: set) -> str:
+    return ", ".join(map(str, sorted(s, key=lambda x: (str(type(x)), x))))
+
+
+def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, keys=(), also=(),
+            reference: str | None = None) -> dict:
+    """The comparison as a dict (what ``compare.json`` holds); see the module docstring."""
+    result = {"metric": metric, "interval": "95% paired t (Student's t, n - 1 df, on per-seed differences)",
+              "group": group, "groups": [],
+              "not_finished": [{"path": str(r.path), "status": r.status, "seed": r.seed, "error": r.error}
+                               for r in runs if r.status != "ok"]}
+    for g, sides in make_sides(runs, where, group, reference).items():
+        group_text = f" at {group}={_show(g)}" if group else ""
+        if len(sides) < 2:
+            raise CompareError(f"only one configuration{group_text} ('{sides[0].label}' ...): nothing to compare "
+                               "(give the folders of both sides, or --where one condition per side)")
+        ref, rows = sides[0], []
+        for side in sides:
+            entry = {"label": side.label, "settings": {k: side.settings.get(k) for k in differing(ref.settings, side.settings)},
+                     "commits": sorted({r.commit for r in side.runs.values() if r.commit}),
+                     "not_finished": [str(r.path) for r in side.unfinished]}
+            seeds = sorted(side.runs)
+            if side is not ref:
+                entry["differs_in"] = _check_pair(ref, side, keys, group_text)
+                seeds, dropped = _common_seeds(ref, side, group_text)
+                entry["dropped_seeds"] = dropped
+                entry.update(paired([_value(ref.runs[s], metric) for s in seeds],
+                                    [_value(side.runs[s], metric) for s in seeds]))
+            values = [_value(side.runs[s], metric) for s in seeds]
+            entry.update(seeds=seeds, values=values, mean=mean_sd(values)[0], sd=mean_sd(values)[1],
+                         paths=[str(side.runs[s].path) for s in seeds],
+                         also={k: mean_sd([_value(side.runs[s], k) for s in seeds]) for k in also})
+            rows.append(entry)
+        result["groups"].append({"group": g, "sides": rows})
+    return result
+
+
+def _cell(mean: float, sd: float) -> str:
+    return f"{mean:.3f} ± {sd:.3f}"
+
+
+def to_markdown(result: dict) -> str:
+    """``compare.md``: per group, the per-seed table and the summary table."""
+    metric = result["metric"]
+    lines = ["# Comparison", "", f"Metric: `{metric}`. Differences are in points (x 100) against the reference "
+             f"(the first side), with the {result['interval']}.", ""]
+    for grp in result["groups"]:
+        sides = grp["sides"]
+        if result["group"]:
+            lines += [f"## {result['group']} = {_show(grp['group'])}", ""]
+        seeds = sorted({s for side in sides for s in side["seeds"]}, key=lambda x: (str(type(x)), x))
+        also = list(sides[0]["also"])
+        lines += ["| side | seeds | " + metric + " (mean ± std) | " + "".join(f"{k} | " for k in also)
+                  + "vs reference (points) | 95% interval | ahead / tied / behind | commit |",
+                  "|---|---|---|" + "---|" * len(also) + "---|---|---|---|"]
+        for i, s in enumerate(sides):
+            vs = ("reference" if i == 0 else f"{100 * s['diff']:+.1f} ± {100 * s['diff_sd']:.1f}")
+            ci = "" if i == 0 else f"[{100 * s['low']:+.1f}, {100 * s['high']:+.1f}]"
+            wins = "" if i == 0 else f"{s['ahead']} / {s['tied']} / {s['behind']}"
+            lines.append(f"| {s['label']} | {len(s['seeds'])} | {_cell(s['mean'], s['sd'])} | "
+                         + "".join(f"{_cell(*s['also'][k])} | " for k in also)
+                         + f"{vs} | {ci} | {wins} | {', '.join(s['commits']) or '-'} |")
+        lines += ["", "Per seed:", "", "| seed | " + " | ".join(s["label"] for s in sides) + " |",
+                  "|---|" + "---|" * len(sides)]
+        for seed in seeds:
+            cells = [f"{s['values'][s['seeds'].index(seed)]:.4f}" if seed in s["seeds"] else "-" for s in sides]
+            lines.append(f"| {seed} | " + " | ".join(cells) + " |")
+        for s in sides[1:]:
+            keys = _by_option(s["differs_in"])
+            note = f"'{s['label']}' differs from the reference in: {', '.join(keys[:8])}" + (" ..." if len(keys) > 8 else "")
+            if s["dropped_seeds"]:
+                note += f"; seeds left out (unfinished on one side): {_seeds(set(s['dropped_seeds']))}"
+            lines += ["", note]
+        lines.append("")
+    if result["not_finished"]:
+        lines += ["Runs not finished (left out):", ""]
+        lines += [f"- {r['path']}: {r['status']}" + (f": {r['error']}" if r["error"] else "") for r in result["not_finished"]]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write(result: dict, out_dir) -> tuple[Path, Path]:
+    """``compare.md`` and ``compare.json`` into ``out_dir`` (made if needed); their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    md, js = out / "compare.md", out / "compare.json"
+    md.write_text(to_markdown(result))
+    js.write_text(json.dumps(result, indent=1, default=str))
+    return md, js

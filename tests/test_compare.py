@@ -1,0 +1,168 @@
+"""mvtn-compare: sides, pairing by seed, the paired-t interval, refusals, and the run mode end to end."""
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from scipy import stats
+
+from mvtn_exp.cli.compare import main, parse_seeds
+from mvtn_exp.engine.compare import CompareError, compare, find_runs
+
+
+def _config(selector="spherical", views=1, seed=0, dataset_seed=0, epochs=20, threads=1):
+    return {"seed": seed, "views": views, "epochs": epochs, "threads": threads, "device": "cpu",
+            "dataset": {"name": "synthetic_views", "seed": dataset_seed, "root": f"/somewhere/{threads}"},
+            "selector": {"name": selector}, "paths": {"output_dir": f"/o{seed}"}}
+
+
+def _run(folder, name, acc, val=0.5, commit="abc1234def", **cfg):
+    d = folder / name
+    d.mkdir(parents=True)
+    (d / "metrics.json").write_text(json.dumps({"test_acc": acc, "best_val_acc": val, "test_detail_seen": acc / 2,
+                                                "config": _config(**cfg),
+                                                "provenance": {"commit": commit, "dirty": False}}))
+    return d
+
+
+FIXED = {0: 0.50, 1: 0.60, 2: 0.55, 3: 0.40}
+LEARNED = {0: 0.70, 1: 0.65, 2: 0.75, 3: 0.30}
+
+
+def _two_sides(tmp_path, **kw):
+    for s, a in FIXED.items():
+        _run(tmp_path / "f", f"s{s}", a, seed=s, selector="spherical", **kw)
+    for s, a in LEARNED.items():
+        _run(tmp_path / "l", f"s{s}", a, seed=s, selector="poi", **kw)
+
+
+def test_paired_t_interval_and_wins_match_scipy(tmp_path, capsys):
+    _two_sides(tmp_path)
+    assert main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c"), "--also", "test_detail_seen"]) is None
+    out = capsys.readouterr().out
+    d = [LEARNED[s] - FIXED[s] for s in range(4)]
+    ci = stats.t.interval(0.95, 3, loc=sum(d) / 4, scale=stats.sem(d))
+    assert f"[{100 * ci[0]:+.1f}, {100 * ci[1]:+.1f}]" in out
+    sd = math.sqrt(sum((x - sum(d) / 4) ** 2 for x in d) / 3)
+    assert f"| selector.name=poi | 4 | 0.600 ± {math.sqrt(sum((v - .6) ** 2 for v in LEARNED.values()) / 3):.3f} |" in out
+    assert f"{100 * sum(d) / 4:+.1f} ± {100 * sd:.1f}" in out and "| 3 / 0 / 1 |" in out
+    assert "| selector.name=spherical | 4 |" in out and "reference" in out
+    assert out.strip().splitlines()[-1] == str(tmp_path / "c" / "compare.md")
+    saved = json.loads((tmp_path / "c" / "compare.json").read_text())
+    side = saved["groups"][0]["sides"][1]
+    assert side["seeds"] == [0, 1, 2, 3] and side["values"] == [LEARNED[s] for s in range(4)]
+    assert side["ahead"] == 3 and side["behind"] == 1 and side["differs_in"] == ["selector.name"]
+    assert side["low"] == pytest.approx(ci[0]) and side["high"] == pytest.approx(ci[1])
+    assert (tmp_path / "c" / "compare.md").read_text().startswith("# Comparison")
+
+
+def test_reference_where_group_and_metric(tmp_path, capsys):
+    for views in (1, 4):
+        for s in range(3):
+            _run(tmp_path, f"f{views}_{s}", 0.1 * s + views / 10, val=0.2, seed=s, views=views)
+            _run(tmp_path, f"l{views}_{s}", 0.1 * s + views / 10 + 0.05 * views, val=0.3 + s / 100, seed=s,
+                 views=views, selector="poi")
+    runs = find_runs([tmp_path])
+    res = compare(runs, group="views", reference="selector=poi")
+    assert [g["group"] for g in res["groups"]] == [1, 4]
+    for g, views in zip(res["groups"], (1, 4)):
+        assert g["sides"][0]["label"] == "selector.name=poi"  # the reference comes first
+        assert g["sides"][1]["diff"] == pytest.approx(-0.05 * views)
+    val = compare(runs, metric="best_val_acc", where=["selector.name=spherical views=1", "selector=poi views=1"])
+    assert val["groups"][0]["sides"][1]["diff"] == pytest.approx(0.11)
+    with pytest.raises(CompareError, match="differ in views"):  # one side holding two settings
+        compare(runs, where=["selector=spherical", "selector=poi"])
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path), "--group", "views", "--metric", "no_such_metric"])
+    assert e.value.code == 2 and "no number under 'no_such_metric'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("key,value", [("dataset_seed", 1), ("epochs", 40)])
+def test_sides_that_differ_in_data_or_epochs_are_refused_unless_named(tmp_path, capsys, key, value):
+    for s in range(3):
+        _run(tmp_path, f"a{s}", 0.5, seed=s)
+        _run(tmp_path, f"b{s}", 0.6, seed=s, selector="poi", **{key: value})
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path)])
+    err = capsys.readouterr().err.strip()
+    name = {"dataset_seed": "dataset.seed", "epochs": "epochs"}[key]
+    assert e.value.code == 2 and len(err.splitlines()) == 1 and err.startswith(f"mvtn-compare: {name}:")
+    assert f"--key {name}" in err
+    main([str(tmp_path), "--key", name.split(".")[0]])  # named: compared
+    assert "+10.0" in capsys.readouterr().out
+
+
+def test_run_local_keys_make_no_difference(tmp_path):
+    for s in range(2):
+        _run(tmp_path, f"a{s}", 0.5, seed=s, threads=1)
+        _run(tmp_path, f"b{s}", 0.6, seed=s, selector="poi", threads=2)
+    res = compare(find_runs([tmp_path]))
+    assert res["groups"][0]["sides"][1]["differs_in"] == ["selector.name"]
+
+
+def test_seeds_must_match_unless_an_unfinished_run_explains_it(tmp_path, capsys):
+    _two_sides(tmp_path)
+    extra = _run(tmp_path / "l", "s9", 0.9, seed=9, selector="poi")
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "f"), str(tmp_path / "l")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith("mvtn-compare: seed:") and len(err.strip().splitlines()) == 1
+    # seed 9 failed on the fixed side: listed, and the other seeds are compared
+    (extra.parent.parent / "f" / "s9").mkdir()
+    (tmp_path / "f" / "s9" / "status.json").write_text(json.dumps({"status": "error", "error": "disk full"}))
+    (tmp_path / "f" / "s9" / ".hydra").mkdir()
+    (tmp_path / "f" / "s9" / ".hydra" / "config.yaml").write_text(json.dumps(_config(seed=9)))
+    main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c")])
+    cap = capsys.readouterr()
+    assert "s9: error: disk full" in cap.out and "1 run(s) not finished" in cap.err
+    side = json.loads((tmp_path / "c" / "compare.json").read_text())["groups"][0]["sides"][1]
+    assert side["seeds"] == [0, 1, 2, 3] and side["dropped_seeds"] == [9]
+
+
+def test_too_few_seeds_or_one_side_or_nothing_is_one_line_exit_2(tmp_path, capsys):
+    _run(tmp_path, "a0", 0.5, seed=0)
+    _run(tmp_path, "b0", 0.6, seed=0, selector="poi")
+    for argv, start in (([str(tmp_path)], "mvtn-compare: seed:"),
+                        ([str(tmp_path), "--where", "selector=poi"], "mvtn-compare: only one configuration"),
+                        ([str(tmp_path / "none")], "mvtn-compare: "), ([], "mvtn-compare: give the folders"),
+                        ([str(tmp_path), "--where", "seed=0"], "mvtn-compare: --where 'seed=0': seed is what"),
+                        (["--run", "selector=poi", "--seeds", "0-3"], "mvtn-compare: --run: give at least two"),
+                        (["--run", "a=1", "--run", "b=2", "--seeds", "x"], "mvtn-compare: --seeds 'x'")):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and err.startswith(start) and len(err.strip().splitlines()) == 1, (argv, err)
+    assert parse_seeds("0-3,7") == [0, 1, 2, 3, 7]
+
+
+TINY = ["views=2", "image_size=32", "epochs=1", "batch_size=8", "dataset.num_per_class=[4,2,2]", "backbone=small_cnn",
+        "logger.progress=false", "logger.tensorboard=false"]
+
+
+def test_run_mode_trains_each_side_and_seed_then_reads_them_again(tmp_path, capsys):
+    out = tmp_path / "c"
+    argv = ["--run", "selector=circular", "--run", "selector=spherical", "--seeds", "0-1", "--jobs", "2",
+            "--out", str(out), *TINY, f"dataset.root={tmp_path / 'cache'}"]
+    main(argv)
+    first = capsys.readouterr().out
+    assert "| selector=circular | 2 |" in first and "| selector=spherical | 2 |" in first
+    for side, name in ((1, "circular"), (2, "spherical")):
+        for seed in (0, 1):
+            m = json.loads((out / f"side{side}" / f"seed{seed}" / "metrics.json").read_text())
+            assert m["config"]["selector"]["name"] == name and m["config"]["seed"] == seed and m["config"]["threads"] == 1
+    stamp = (out / "side1" / "seed0" / "metrics.json").stat().st_mtime_ns
+    main(argv)  # finished runs are read, not trained again
+    assert capsys.readouterr().out == first
+    assert (out / "side1" / "seed0" / "metrics.json").stat().st_mtime_ns == stamp
+
+
+def test_run_mode_checks_every_side_before_training(tmp_path, capsys):
+    for sides, start in ((["selector=circular", "selector=circular selector.nope=1"], "mvtn-compare: config error"),
+                         (["selector=circular", "selector=spherical epochs=3"], "mvtn-compare: epochs:"),
+                         (["selector=circular", "selector=circular"], "mvtn-compare: --run 'selector=circular' gives the same")):
+        with pytest.raises(SystemExit) as e:
+            main([x for s in sides for x in ("--run", s)] + ["--seeds", "0-1", "--out", str(tmp_path / "c"), *TINY])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and err.startswith(start) and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "c").exists()
