@@ -61,7 +61,8 @@ class MVTN(nn.Module):
     def select(self, batch: dict, all_hypotheses: bool = False, refine: bool = True):
         """G: ``batch["points"] [B, N, 3]`` -> ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world
         units); with ``all_hypotheses`` (a G holding H hypotheses) each ``[B, H * M]``; ``refine``:
-        the selector's per-batch work against R and C (``ViewSelector.refine``) included."""
+        the selector's per-batch work against R and C (``ViewSelector.refine``) included, given
+        the batch's labels only while training."""
         points = batch["points"]
         n = self.selector_points
         if n is not None and getattr(self.selector, "learned", False):
@@ -69,8 +70,9 @@ class MVTN(nn.Module):
         if all_hypotheses:
             return self.selector(points.to(self.device), all_hypotheses=True)
         views = self.selector(points.to(self.device))
-        if refine:
-            views = self.selector.refine(self, batch, views)
+        if refine:  # evaluation reads no labels: the selector gets the batch without them
+            seen = batch if self.training else {k: v for k, v in batch.items() if k != "labels"}
+            views = self.selector.refine(self, seen, views)
         return views if self.polarity is None else self.polarity(views)
 
     def render_output(self, batch: dict, azim, elev, dist):

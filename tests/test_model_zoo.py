@@ -299,7 +299,7 @@ def test_vit_weights_load_at_any_patch_multiple(tmp_path):
 
 # --------------------------------------------------------------------------- scene-parameter optimisation
 
-@pytest.mark.parametrize("objective", ["min_ce", "max_ce", "max_coverage", "min_coverage", "margin"])
+@pytest.mark.parametrize("objective", ["min_ce", "max_ce", "max_coverage", "min_coverage", "margin", "attack_margin"])
 def test_optimized_views_move_the_objective_the_right_way(cache, objective):
     from mvtn_exp.data.collate import collate_shapes
     from mvtn_exp.engine.trainer import make_datasets
@@ -325,14 +325,67 @@ def test_optimized_views_move_the_objective_the_right_way(cache, objective):
         return float(objective_value(objective, logits, batch["labels"], coverage).sum())
 
     start = model.selector(batch["points"])
-    moved = optimize_views(model, batch, start, model.selector)
+    moved = optimize_views(model, batch, start, model.selector, objective)
     assert not torch.equal(moved[0], start[0]) and not moved[0].requires_grad
     assert value(moved) < value(start)  # the steps decrease the objective
     assert model.mvnet.training and all(p.grad is None for p in model.parameters())
     assert all(torch.equal(v, model.mvnet.state_dict()[k]) for k, v in stats.items())  # C's statistics untouched
-    views = model.select(batch)  # MVTN.select runs the steps, under no_grad too (evaluation)
+    views = model.select(batch)  # MVTN.select runs the steps, under no_grad too
     with torch.no_grad():
         assert not torch.equal(model.select(batch)[0], start[0]) and torch.isfinite(views[0]).all()
+
+
+def test_margin_is_the_label_free_top_two_gap():
+    from mvtn_exp.selectors.optimized import objective_value
+
+    logits = torch.tensor([[3.0, 1.0, 0.5], [0.2, 0.1, 2.0]])
+    gap = objective_value("margin", logits, None, torch.zeros(2))
+    torch.testing.assert_close(gap, torch.tensor([-2.0, -1.8]))  # decreasing it widens the gap
+    assert torch.equal(objective_value("margin", logits, torch.tensor([2, 0]), torch.zeros(2)), gap)  # labels unused
+    true_margin = objective_value("attack_margin", logits, torch.tensor([2, 0]), torch.zeros(2))
+    torch.testing.assert_close(true_margin, torch.tensor([0.5 - 3.0, 0.2 - 2.0]))
+    with pytest.raises(ValueError, match="needs the labels"):
+        objective_value("min_ce", logits, None, torch.zeros(2))
+
+
+class _Poison:
+    """A labels entry that fails on any use: what the evaluation path must never touch."""
+
+    def __getattr__(self, name):
+        raise AssertionError(f"evaluation read the labels (.{name})")
+
+
+def _selector_settings():
+    from mvtn_exp.options import OPTIONS, load
+
+    load()
+    extra = {"optimized": {"steps": 2, "step_size": 20.0, "objective": "min_ce"}}
+    return [{"name": name, **extra.get(name, {})} for name in sorted(OPTIONS["selector"])]
+
+
+@pytest.mark.parametrize("selector", _selector_settings(), ids=lambda s: s["name"])
+def test_no_selector_reads_the_labels_at_evaluation(cache, selector):
+    """Every registered selector, evaluated (model.eval()) on a batch whose labels fail on any use,
+    gives its views; the labelled objective of ``optimized`` would have read them."""
+    from mvtn_exp.data.collate import collate_shapes
+    from mvtn_exp.engine.trainer import make_datasets
+    from mvtn_exp.model import build_mvtn
+
+    cfg = as_config(_tiny(cache, selector=selector))
+    ds = make_datasets(cfg)["test"]
+    model = build_mvtn(cfg, len(ds.classes)).eval()
+    batch = collate_shapes([ds[i] for i in range(4)])
+    real = batch["labels"]
+    batch["labels"] = _Poison()
+    with torch.no_grad():
+        out = model(batch)
+    assert out["logits"].shape == (4, len(ds.classes)) and torch.isfinite(out["azim"]).all()
+    if selector["name"] == "optimized":  # while training it does read them
+        batch["labels"] = _Poison()
+        with pytest.raises(AssertionError, match="read the labels"):
+            model.train().select(batch)
+        batch["labels"] = real
+        model.select(batch)
 
 
 # --------------------------------------------------------------------------- ViewGCN

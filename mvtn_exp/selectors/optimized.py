@@ -6,20 +6,24 @@ objective of the current C through the differentiable renderer R:
 
     u_0 = layout;  u_{t+1} = u_t - lr * sign * d objective(C(R(S, u_t)), y) / d u_t
 
-Objectives (``objective``): ``min_ce`` (views that help C: lowest cross-entropy), ``max_ce``
-(views that hurt it), ``max_coverage`` / ``min_coverage`` (mean soft coverage of the images),
-``margin`` (adversarial: raise the best wrong logit over the true one). The paper: 10 steps,
-learning rate 50 for cross-entropy, 25 for coverage and the margin, on a pretrained C.
+Objectives (``objective``, while training): ``min_ce`` (views that help C: lowest cross-entropy),
+``max_ce`` (views that hurt it), ``max_coverage`` / ``min_coverage`` (mean soft coverage of the
+images), ``margin`` (the paper's: the widest gap between C's two highest logits, no labels), and
+``attack_margin`` (adversarial, with labels: raise the best wrong logit over the true one). The
+paper: 10 steps, learning rate 50 for cross-entropy, 25 for coverage and the margin, on a
+pretrained C.
 
-The cross-entropy and margin objectives read the labels, at evaluation too: this is an analysis
-of how far views alone move a given C (an oracle, or an attack), not a deployable selector.
-During the inner steps C runs in evaluation mode (its BatchNorm statistics do not move) and no
-gradient reaches any weight; the final views are detached. It needs a renderer with a camera
-gradient (soft mode).
+Labels never reach evaluation: ``MVTN.select`` hands an evaluating selector the batch without its
+labels, and at evaluation the steps follow ``eval_objective``, a label-free objective (``margin``,
+``max_coverage``, ``min_coverage``) or ``none`` (the starting layout). Its default is the training
+objective when that one is label-free, else ``margin``. During the inner steps C runs in evaluation
+mode (its BatchNorm statistics do not move) and no gradient reaches any weight; the final views are
+detached. It needs a renderer with a camera gradient (soft mode).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -29,7 +33,9 @@ from mvtn_exp.checks import at_least, one_of
 from mvtn_exp.selectors.config import register
 from mvtn_exp.selectors.fixed import BASE_LAYOUTS, LayoutConfig, ViewSelector, Views, base_layout
 
-OBJECTIVES = ("min_ce", "max_ce", "max_coverage", "min_coverage", "margin")
+LABEL_FREE = ("margin", "max_coverage", "min_coverage")
+OBJECTIVES = ("min_ce", "max_ce", "attack_margin", *LABEL_FREE)
+EVAL_OBJECTIVES = ("none", *LABEL_FREE)
 
 
 class OptimizedSelector(ViewSelector):
@@ -39,11 +45,16 @@ class OptimizedSelector(ViewSelector):
 
     def __init__(self, views: int, layout: str = "circular", steps: int = 10, lr: float = 50.0,
                  objective: str = "min_ce", elevation: float = 30.0, distance: float = 2.2,
-                 sphere: str = "equal_area") -> None:
+                 sphere: str = "equal_area", eval_objective: str | None = None) -> None:
         super().__init__(views)
         self.base = base_layout("OptimizedSelector", views, layout, elevation, distance, sphere)
         if objective not in OBJECTIVES:
             raise ValueError(f"selector.objective={objective!r}: expected one of {', '.join(OBJECTIVES)}")
+        eval_objective = eval_objective or (objective if objective in LABEL_FREE else "margin")
+        if eval_objective not in EVAL_OBJECTIVES:
+            raise ValueError(f"selector.eval_objective={eval_objective!r}: expected one of {', '.join(EVAL_OBJECTIVES)} "
+                             "(evaluation reads no labels)")
+        self.eval_objective = eval_objective
         if steps < 0 or not lr > 0:
             raise ValueError(f"selector.steps={steps} must be >= 0 and selector.lr={lr} > 0")
         self.layout, self.steps, self.lr, self.objective = layout, int(steps), float(lr), objective
@@ -53,37 +64,47 @@ class OptimizedSelector(ViewSelector):
         return self.base(points)
 
     def refine(self, model, batch: dict, views: Views) -> Views:
-        """``steps`` gradient steps on the batch's views against the objective (``optimize_views``)."""
-        return optimize_views(model, batch, views, self)
+        """``steps`` gradient steps on the batch's views (``optimize_views``) against ``objective``
+        while training, ``eval_objective`` when evaluating (a batch without labels)."""
+        objective = self.objective if self.training and "labels" in batch else self.eval_objective
+        return optimize_views(model, batch, views, self, objective)
 
     def extra_repr(self) -> str:
-        return f"views={self.views}, layout={self.layout}, steps={self.steps}, lr={self.lr}, objective={self.objective}"
+        return (f"views={self.views}, layout={self.layout}, steps={self.steps}, lr={self.lr}, "
+                f"objective={self.objective}, eval_objective={self.eval_objective}")
 
 
-def objective_value(objective: str, logits: Tensor, labels: Tensor, coverage: Tensor) -> Tensor:
+def objective_value(objective: str, logits: Tensor, labels: Tensor | None, coverage: Tensor) -> Tensor:
     """The quantity the steps *decrease*: ``[B]`` per shape (so every shape moves on its own).
 
-    logits ``[B, K]``, labels ``[B]``, coverage ``[B]`` (mean soft coverage of the shape's views).
+    logits ``[B, K]``, labels ``[B]`` (None for the label-free objectives), coverage ``[B]`` (mean
+    soft coverage of the shape's views).
     """
-    if objective == "min_ce":
-        return F.cross_entropy(logits, labels, reduction="none")
-    if objective == "max_ce":
-        return -F.cross_entropy(logits, labels, reduction="none")
+    if objective == "margin":  # the paper's: widen the gap between the two highest logits
+        top = logits.topk(2, dim=1).values if logits.shape[1] > 1 else torch.cat([logits, logits], 1)
+        return top[:, 1] - top[:, 0]
     if objective == "max_coverage":
         return -coverage
     if objective == "min_coverage":
         return coverage
+    if labels is None:
+        raise ValueError(f"selector.objective={objective}: needs the labels, which only training has")
+    if objective == "min_ce":
+        return F.cross_entropy(logits, labels, reduction="none")
+    if objective == "max_ce":
+        return -F.cross_entropy(logits, labels, reduction="none")
     true = logits.gather(1, labels[:, None])[:, 0]
     wrong = logits.masked_fill(F.one_hot(labels, logits.shape[1]).bool(), float("-inf")).amax(1)
-    return true - wrong  # margin: decreasing it pushes the best wrong class above the true one
+    return true - wrong  # attack_margin: decreasing it pushes the best wrong class above the true one
 
 
-def optimize_views(model, batch: dict, views: Views, selector: OptimizedSelector) -> Views:
-    """``steps`` gradient steps on the views of ``batch`` (see the module docstring)."""
+def optimize_views(model, batch: dict, views: Views, selector: OptimizedSelector, objective: str) -> Views:
+    """``steps`` gradient steps on the views of ``batch`` against ``objective`` (see the module
+    docstring); the labels are read only by an objective that needs them."""
     azim, elev, dist = (v.detach() for v in views)
-    if selector.steps == 0:
+    if selector.steps == 0 or objective == "none":
         return azim, elev, dist
-    labels = batch["labels"].to(azim.device)
+    labels = None if objective in LABEL_FREE else batch["labels"].to(azim.device)
     was_training = model.mvnet.training
     model.mvnet.eval()
     try:
@@ -92,9 +113,8 @@ def optimize_views(model, batch: dict, views: Views, selector: OptimizedSelector
                 azim, elev = azim.requires_grad_(True), elev.requires_grad_(True)
                 out = model.render_output(batch, azim, elev, dist)
                 logits, _ = model.mvnet(out.images, (azim, elev, dist))
-                B = len(labels)
-                coverage = out.alpha.reshape(B, -1).mean(1)
-                value = objective_value(selector.objective, logits, labels, coverage).sum()
+                coverage = out.alpha.reshape(len(logits), -1).mean(1)
+                value = objective_value(objective, logits, labels, coverage).sum()
                 g_azim, g_elev = torch.autograd.grad(value, (azim, elev))
                 azim = (azim - selector.lr * g_azim).detach()
                 elev = (elev - selector.lr * g_elev).detach()
@@ -108,17 +128,21 @@ def optimize_views(model, batch: dict, views: Views, selector: OptimizedSelector
 @dataclass
 class OptimizedConfig(LayoutConfig):
     """The paper's scene-parameter optimisation: the base layout, then ``steps`` gradient steps of
-    ``step_size`` on each batch's views against ``objective`` of the current C (labels included:
-    an analysis of what views alone do to C, not a deployable G)."""
+    ``step_size`` on each batch's views against ``objective`` of the current C while training, and
+    against the label-free ``eval_objective`` at evaluation (null: ``objective`` when it is
+    label-free, else ``margin``)."""
 
     name: str = "optimized"
     steps: int = 10
     step_size: float = 50.0
     objective: str = "min_ce"
+    eval_objective: Optional[str] = None
 
     def validate(self) -> "OptimizedConfig":
         super().validate()
         one_of("selector.objective", self.objective, OBJECTIVES)
+        if self.eval_objective is not None:
+            one_of("selector.eval_objective", self.eval_objective, EVAL_OBJECTIVES)
         at_least("selector.steps", self.steps, 0)
         at_least("selector.step_size", self.step_size, 0.0, strict=True)
         return self
@@ -129,4 +153,4 @@ class OptimizedConfig(LayoutConfig):
     def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
         return OptimizedSelector(views, layout=self.base_layout, steps=self.steps, lr=self.step_size,
                                  objective=self.objective, elevation=self.elevation, distance=self.distance,
-                                 sphere=self.sphere)
+                                 sphere=self.sphere, eval_objective=self.eval_objective)
