@@ -10,6 +10,7 @@ from .data.shapes import PointClouds
 from .models.precision import autocast
 from .render.renderer import MultiViewRenderer
 from .schema import SHAPES, TrainConfig
+from .selectors.canonical import CanonicalPose, world_views
 from .selectors.hypotheses import HypothesisRace
 from .selectors.polarity import ViewPolarity
 
@@ -23,8 +24,9 @@ class MVTN(nn.Module):
 
     def __init__(self, selector: nn.Module, renderer: MultiViewRenderer, mvnet: nn.Module, shape: str = "mesh",
                  selector_points: Optional[int] = None, polarity: Optional[ViewPolarity] = None,
-                 hypotheses: Optional[HypothesisRace] = None):
+                 hypotheses: Optional[HypothesisRace] = None, canonical: Optional[CanonicalPose] = None):
         super().__init__()
+        self.canonical = canonical  # each shape turned into its principal frame first (selectors/canonical.py)
         self.hypotheses = hypotheses  # sets of views tried side by side early on (selectors/hypotheses.py)
         self.polarity = polarity  # which side of its axis each learned view looks from (selectors/polarity.py)
         self.selector_points = selector_points  # a learned G reads the first n points (None: all)
@@ -41,11 +43,20 @@ class MVTN(nn.Module):
         return self
 
     def forward(self, batch: dict) -> dict:
+        """The views returned are world directions; with ``canonical`` G and R work in each
+        shape's principal frame, and the views are turned back for the record."""
         views = self.select(batch)
         images = self.render(batch, *views)
         logits, features = self.classify(images, views)
+        if self.canonical is not None:
+            views = world_views(views, self.canonical(batch)[1])
         return {"logits": logits, "features": features, "azim": views[0], "elev": views[1], "dist": views[2],
                 "images": images}
+
+    def posed(self, batch: dict) -> dict:
+        """The batch G and R see: as given, or each shape in its principal frame (``canonical``;
+        idempotent, so a batch posed twice is posed once)."""
+        return batch if self.canonical is None else self.canonical(batch)[0]
 
     def classify(self, images, views):
         """C: ``images [B, M, 3, H, W]`` rendered from ``views`` -> ``(logits [B, K], features [B, D])``,
@@ -63,6 +74,7 @@ class MVTN(nn.Module):
         units); with ``all_hypotheses`` (a G holding H hypotheses) each ``[B, H * M]``; ``refine``:
         the selector's per-batch work against R and C (``ViewSelector.refine``) included, given
         the batch's labels only while training."""
+        batch = self.posed(batch)
         points = batch["points"]
         n = self.selector_points
         if n is not None and getattr(self.selector, "learned", False):
@@ -77,6 +89,7 @@ class MVTN(nn.Module):
 
     def render_output(self, batch: dict, azim, elev, dist):
         """R: the batch's shapes seen from ``[B, M]`` views -> ``RenderOutput`` (images and coverage)."""
+        batch = self.posed(batch)
         if self.shape == "points":
             shapes = PointClouds.from_padded(batch["points"].to(self.device))
         else:
@@ -105,6 +118,7 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
     with torch.random.fork_rng(devices=[]):
         selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder)
     model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,
-                 selector_points=cfg.selector.kept_points(), **cfg.selector.modules(cfg.views))
+                 selector_points=cfg.selector.kept_points(), **cfg.selector.modules(cfg.views),
+                 canonical=CanonicalPose() if cfg.selector.canonical == "pca" else None)
     model.precision = cfg.precision
     return model

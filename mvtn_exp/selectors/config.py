@@ -31,10 +31,13 @@ schema = REGISTRY.schema
 
 @dataclass
 class SelectorConfig(OptionConfig):
-    """Keys every selector has: ``name`` (the option; set it with ``selector=NAME``) and
-    ``distance``, the camera distance in world units (the shapes lie in the unit sphere)."""
+    """Keys every selector has: ``name`` (the option; set it with ``selector=NAME``),
+    ``distance``, the camera distance in world units (the shapes lie in the unit sphere), and
+    ``canonical``: ``none`` (shapes as posed) or ``pca`` (each shape turned into its principal
+    frame before G and R see it, ``selectors/canonical.py``: the pose-canonicalised baseline)."""
 
     distance: float = 2.2
+    canonical: str = "none"
 
     kind = "selector"
 
@@ -44,6 +47,7 @@ class SelectorConfig(OptionConfig):
     def validate(self) -> "SelectorConfig":
         super().validate()
         at_least("selector.distance", self.distance, 0.0, strict=True)
+        one_of("selector.canonical", self.canonical, ("none", "pca"))
         return self
 
     def build(self, views: int, seed: int, point_encoder=None):
