@@ -49,6 +49,8 @@ def check_device(key: str, device: str) -> None:
             raise ValueError(f"{key}={device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
 
 
+VIEW_FAMILIES = ("cup", "decoys")  # dataset=synthetic_views families (data/synthetic_views.py FAMILIES)
+
 @dataclass
 class DatasetConfig:
     """Which shapes. ``root``: the dataset folder (synthetic: its cache folder).
@@ -64,7 +66,8 @@ class DatasetConfig:
     ``split_csv`` (default ``<root>/all.csv``, the SHREC17 split) and ``synset_dict`` (default
     ``<root>/shapenet_synset_dict_v2.json``, synset id -> name). ModelNet40 ``format``: ``off``
     (meshes), ``normal_resampled`` or ``ply_hdf5_2048`` (the PointNet authors' point releases).
-    ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``val_fraction``: share of
+    ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``family``: the synthetic_views
+    family (cup, decoys; empty for every other dataset); ``val_fraction``: share of
     the official train split held out for model selection when a dataset has no val split.
     """
 
@@ -80,6 +83,7 @@ class DatasetConfig:
     strict: bool = False
     cache_dir: str = "${paths.cache_dir}"
     variant: str = ""
+    family: str = ""
     format: str = "off"
     split_csv: Optional[str] = None
     synset_dict: Optional[str] = None
@@ -91,6 +95,11 @@ class DatasetConfig:
         one_of("dataset.shape", self.shape, SHAPES)
         one_of("dataset.rotate", self.rotate, ROTATIONS)
         one_of("dataset.format", self.format, ("off", "normal_resampled", "ply_hdf5_2048"))
+        if self.name == "synthetic_views":
+            one_of("dataset.family", self.family or "cup", VIEW_FAMILIES)
+        elif self.family:
+            raise ValueError(f"dataset.family={self.family}: only dataset=synthetic_views has families; drop it for "
+                             f"dataset={self.name}")
         at_least("dataset.num_points", self.num_points, 1)
         at_least("dataset.seed", self.seed, 0)
         at_least("dataset.max_faces", self.max_faces, 1)

@@ -276,3 +276,63 @@ def test_detail_angles_png(tmp_path):
     assert detail_angles_png(angles, tmp_path / "a.png").stat().st_size > 1000
     with pytest.raises(ValueError, match=r"expected angles \[N, M\]"):
         detail_angles_png(np.zeros((0, 2)), tmp_path / "b.png")
+
+
+# ------------------------------------------------------------------------------- the decoys family
+@pytest.fixture(scope="module")
+def decoys(tmp_path_factory):
+    return make(tmp_path_factory.mktemp("decoys"), "test", family="decoys", num_per_class=(2, 1, 6))
+
+
+def test_decoys_hide_the_detail_in_one_of_six_identical_cups(decoys):
+    from mvtn_exp.schema import VIEW_FAMILIES
+
+    assert VIEW_FAMILIES == sv.FAMILIES
+    faces = set()
+    for i in range(len(decoys)):
+        cv, anchor, axis = canonical(decoys, i)
+        k = int(np.argmax(np.abs(axis)))
+        assert np.isclose(abs(axis[k]), 1, atol=1e-5) and np.allclose(np.delete(anchor, k), 0, atol=1e-5)
+        r_in, h, _ = decoys._a["detail_size"][i]
+        assert abs(anchor[k] * np.sign(axis[k]) + h - np.abs(cv[:, k]).max()) < 1e-5  # its rim: the body's extent
+        faces.add((k, np.sign(axis[k])))
+    assert len(faces) == 6  # every face holds the detail for some shape
+    # the body is the same whichever face holds the detail: the empty class's mesh ignores the face draw
+    R = random_rotation("so3", np.random.default_rng(1))
+    seeds = [s for s in range(40) if int(sv.draw_family("decoys", np.random.default_rng(s))[1][2, 2]) != 1][:2]
+    assert len(seeds) == 2
+    v0, f0, *_ = sv.make_shape("empty", seeds[0], R, family="decoys")
+    assert len(f0) > 6 * 2 * sv.CUP_SECTIONS  # six cups
+    for cls in ("cone", "ring"):  # the detail is the only difference to the empty twin
+        v, f, *frame = sv.make_shape(cls, seeds[0], R, family="decoys")
+        assert np.array_equal(v[: len(v0)], v0) and len(f) > len(f0)
+
+
+def test_no_principal_axis_points_at_the_decoys_detail(decoys, splits):
+    from mvtn_exp.selectors.canonical import pca_frames
+
+    def aligned(ds):
+        R = pca_frames(torch.tensor(ds._a["points"].reshape(len(ds), -1, 3), dtype=torch.float64)).numpy()
+        cos = np.abs(np.einsum("bki,bi->bk", R, ds._a["detail_axis"].astype(np.float64)))
+        return (cos > 0.95).mean(0)  # per canonical axis: shapes whose detail lies along it
+
+    assert aligned(splits["test"])[1] > 0.9  # the cup family: the least-spread axis is the cup's
+    assert (aligned(decoys) < 0.5).all()
+
+
+def test_decoys_render_the_detail_exactly_when_the_criterion_says(decoys):
+    axis = decoys._a["detail_axis"].astype(np.float64)
+    side = np.cross(axis, [[0.0, 1.0, 0.0]])
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    off = np.cos(np.radians(80)) * axis + np.sin(np.radians(80)) * side
+    (a0, e0), (a1, e1) = sv.view_angles(axis), sv.view_angles(off)
+    traces = sv.rendered_traces(decoys, np.stack([a0, a1], 1), np.stack([e0, e1], 1))
+    detail = decoys.labels != CLASSES.index("empty")
+    assert (traces[detail, 0] >= 5).all() and (traces[:, 1] == 0).all() and (traces[~detail] == 0).all()
+
+
+def test_family_is_checked_and_keys_its_own_cache(tmp_path):
+    cup = make(tmp_path, "val")
+    assert make(tmp_path, "val", family="decoys").cache_path != cup.cache_path
+    with pytest.raises(ValueError, match="dataset.family='cups'"):
+        make(tmp_path, "val", family="cups")

@@ -49,7 +49,10 @@ def build_dataset(cfg: DatasetConfig, split: str, progress: bool = True) -> Data
     if cfg.name == "synthetic_views":
         return SyntheticViews(cfg.root, split, num_per_class=cfg.num_per_class, seed=cfg.seed, rotate=cfg.rotate,
                               num_points=cfg.num_points, as_points=cfg.shape == "points",
-                              max_faces=cfg.max_faces, progress=progress)
+                              max_faces=cfg.max_faces, progress=progress, family=cfg.family or "cup")
+    if cfg.family:
+        raise ValueError(f"dataset.family={cfg.family!r}: only dataset=synthetic_views has families; "
+                         f"drop it for {cfg.name}")
     if cfg.rotate != "none":
         raise ValueError(f"dataset.rotate={cfg.rotate!r}: only dataset=synthetic and synthetic_views rotate their "
                          f"shapes; use dataset.rotate=none for {cfg.name}")

@@ -14,7 +14,14 @@ Every shape is the same kind of body (raw units, before normalisation; Y-up, det
   section), ``tetra`` (three-sided pyramid inscribed in rd).
 
 All classes draw the same numbers in the same order and nothing else, so one generator gives the
-same body and cup for every class: the detail is the only class difference. The shape is centred
+same body and cup for every class: the detail is the only class difference.
+
+Families (``family``): ``cup`` (above, the default) and ``decoys``, kept to evaluate finished
+recipes on a place they were not tuned on. ``decoys``: a cube of side ``(W + H) / 2`` with the same
+cup on each of its six faces; the class detail stands in one of them, drawn uniformly per shape
+(one more draw after the dims), the other five stay empty. The global shape is the same whatever
+the face, and near-isotropic (its principal frame is arbitrary), so neither a canonical pose nor a
+class-mean view can know where to look; only the points inside the cups tell. The shape is centred
 (bounding box) and scaled into the unit sphere, then turned by a rotation (``so3`` by default:
 uniform over SO(3), so the cup points anywhere). Determinism, splits and the ``.npz`` cache work
 as in ``synthetic.py``.
@@ -108,31 +115,58 @@ DETAILS = {
 CLASSES: list[str] = sorted(DETAILS)
 
 
-def _builder(cls: str):
+FAMILIES = ("cup", "decoys")
+# the six faces of the decoys' cube: rotations taking +Z to +Z, -Z, +X, -X, +Y, -Y
+FACES = np.array([np.eye(3), np.diag([1.0, -1.0, -1.0]), [[0, 0, 1], [0, 1, 0], [-1, 0, 0]],
+                  [[0, 0, -1], [0, 1, 0], [1, 0, 0]], [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
+                  [[1, 0, 0], [0, 0, -1], [0, 1, 0]]], np.float64)
+
+
+def draw_family(family: str, r: np.random.Generator) -> tuple[Dims, np.ndarray]:
+    """A family's draws: the dims (the decoys' cube side as ``D``) and the rotation ``[3, 3]`` that
+    takes the +Z cup holding the detail to its face (the identity for ``cup``)."""
+    d = draw_dims(r)
+    if family == "cup":
+        return d, FACES[0]
+    return d._replace(D=(d.W + d.H) / 2), FACES[int(r.integers(len(FACES)))]
+
+
+def _turned(part: Part, R: np.ndarray) -> Part:
+    return part[0] @ R.T, part[1]
+
+
+def _builder(cls: str, family: str = "cup"):
     def build(r: np.random.Generator, res: int) -> list[Part]:
-        d = draw_dims(r)
-        cup = trimesh.creation.annulus(d.r, d.r + d.wall, d.h, sections=CUP_SECTIONS)
-        return [_box((d.W, d.H, d.D)), _tm(cup, (0.0, 0.0, d.D / 2 + d.h / 2), False)] + DETAILS[cls](d, max(res // 2, 8))
+        d, R = draw_family(family, r)
+        cup = _tm(trimesh.creation.annulus(d.r, d.r + d.wall, d.h, sections=CUP_SECTIONS), (0.0, 0.0, d.D / 2 + d.h / 2), False)
+        detail = [_turned(p, R) for p in DETAILS[cls](d, max(res // 2, 8))]
+        if family == "cup":
+            return [_box((d.W, d.H, d.D)), cup] + detail
+        return [_box((d.D, d.D, d.D))] + [_turned(cup, F) for F in FACES] + detail
     return build
 
 
 BUILDERS = {c: _builder(c) for c in CLASSES}
+FAMILY_BUILDERS = {f: {c: _builder(c, f) for c in CLASSES} for f in FAMILIES}
 
 
-def frame_points(d: Dims) -> np.ndarray:
-    """``[3, 3]`` canonical points that travel with the mesh: floor centre, rim-plane centre, inscribed wall point."""
-    return np.array([[0.0, 0.0, d.D / 2], [0.0, 0.0, d.D / 2 + d.h], [d.r_in, 0.0, d.D / 2]])
+def frame_points(d: Dims, R: np.ndarray = FACES[0]) -> np.ndarray:
+    """``[3, 3]`` points that travel with the mesh: floor centre, rim-plane centre, inscribed wall
+    point of the cup holding the detail (turned to its face by ``R``)."""
+    return np.array([[0.0, 0.0, d.D / 2], [0.0, 0.0, d.D / 2 + d.h], [d.r_in, 0.0, d.D / 2]]) @ R.T
 
 
-def make_shape(cls: str, seq, rotation: np.ndarray, max_faces: int = 2000):
+def make_shape(cls: str, seq, rotation: np.ndarray, max_faces: int = 2000, family: str = "cup"):
     """One normalised, rotated instance -> ``verts [V, 3] float32``, ``faces [F, 3] int64``, and the
     detail frame: ``anchor [3]`` (floor centre), ``axis [3]`` (unit, out of the cup), ``size [3]``
     (``r_in``, ``h``, ``rd`` in unit-sphere units). ``seq``: the geometry seed (SeedSequence or int)."""
-    v, f = build_shape(cls, seq, max_faces, builders=BUILDERS)
-    d = draw_dims(np.random.default_rng(seq))  # the builder's draws again, from a fresh generator
+    if family not in FAMILIES:
+        raise ValueError(f"dataset.family={family!r}: expected one of {', '.join(FAMILIES)}")
+    v, f = build_shape(cls, seq, max_faces, builders=FAMILY_BUILDERS[family])
+    d, R = draw_family(family, np.random.default_rng(seq))  # the builder's draws again, from a fresh generator
     # the frame points lie inside the bounding box and nearer the centre than the farthest
     # vertex, so normalising them with the mesh leaves the mesh's normalisation unchanged
-    both = normalize_unit_sphere(np.concatenate([v, frame_points(d)])) @ rotation.T
+    both = normalize_unit_sphere(np.concatenate([v, frame_points(d, R)])) @ rotation.T
     v, (a, m, w) = both[:-3], both[-3:]
     h = np.linalg.norm(m - a)
     size = np.array([np.linalg.norm(w - a), h, d.rd * h / d.h])
@@ -148,18 +182,18 @@ def instance_seeds(seed: int, split: str, cls: str, k: int):
 
 
 def generate_split(split: str, count: int, seed: int, rotate: str, max_faces: int, num_points: int,
-                   progress: bool = True) -> dict[str, np.ndarray]:
+                   progress: bool = True, family: str = "cup") -> dict[str, np.ndarray]:
     """``count`` shapes per class -> packed arrays (``packed.PACKED_ARRAYS`` plus ``EXTRA``)."""
     from tqdm.auto import tqdm
 
     shapes = []
-    bar = tqdm(total=count * len(CLASSES), desc=f"synthetic_views {split}", unit="shape", disable=None if progress else True, leave=False)
+    bar = tqdm(total=count * len(CLASSES), desc=f"synthetic_views {family} {split}", unit="shape", disable=None if progress else True, leave=False)
     for label, cls in enumerate(CLASSES):
         for k in range(count):
             name = f"{cls}_{split}_{k:04d}"
             geometry, rot_rng, point_rng = instance_seeds(seed, split, cls, k)
             R = random_rotation(rotate, rot_rng)
-            v, f, anchor, axis, size = make_shape(cls, geometry, R, max_faces)
+            v, f, anchor, axis, size = make_shape(cls, geometry, R, max_faces, family)
             _check(name, v, f)
             pts = sample_surface(v.astype(np.float64), f, num_points, point_rng)
             shapes.append({"verts": v, "faces": f, "points": pts, "label": label, "name": name, "rotations": R,
@@ -188,14 +222,19 @@ class SyntheticViews(PackedShapes):
 
     def __init__(self, root_cache_dir, split: str = "train", num_per_class=(24, 12, 24), seed: int = 0,
                  rotate: str = "so3", num_points: int = 1024, as_points: bool = False, max_faces: int = 2000,
-                 progress: bool = True):
+                 progress: bool = True, family: str = "cup"):
         count = split_count(split, rotate, num_per_class, seed, num_points, max_faces, who="synthetic_views")
+        if family not in FAMILIES:
+            raise ValueError(f"dataset.family={family!r}: expected one of {', '.join(FAMILIES)}")
         self.settings = {"version": GEOMETRY_VERSION, "classes": list(CLASSES), "split": split, "count": count,
                          "seed": int(seed), "rotate": rotate, "max_faces": int(max_faces), "num_points": int(num_points)}
+        if family != "cup":  # the cup family keeps the cache files it always had
+            self.settings["family"] = family
         self.cache_path = cache_file(root_cache_dir, "synthetic_views", self.settings)
         n = count * len(CLASSES)
         arrays = cached_arrays(self.cache_path, self.settings, PACKED_ARRAYS + EXTRA, lambda a: _validate(a, n, int(num_points)),
-                               lambda: generate_split(split, count, int(seed), rotate, int(max_faces), int(num_points), progress))
+                               lambda: generate_split(split, count, int(seed), rotate, int(max_faces), int(num_points),
+                                                      progress, family))
         super().__init__(arrays, CLASSES, split, as_points)
 
     def __getitem__(self, i: int) -> dict:
@@ -332,7 +371,8 @@ def rendered_traces(ds: SyntheticViews, azim, elev, dist: float = 2.2, image_siz
         for i in range(lo, min(lo + batch, len(ds))):
             cls, split, k = ds.names[i].rsplit("_", 2)
             geometry, rot_rng, _ = instance_seeds(cfg["seed"], split, cls, int(k))
-            v, f, *_ = make_shape("empty", geometry, random_rotation(cfg["rotate"], rot_rng), cfg["max_faces"])
+            v, f, *_ = make_shape("empty", geometry, random_rotation(cfg["rotate"], rot_rng), cfg["max_faces"],
+                                  cfg.get("family", "cup"))
             item = ds.item(i)
             verts += [item["verts"], torch.from_numpy(v)]
             faces += [item["faces"], torch.from_numpy(f)]
@@ -351,13 +391,15 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--num-per-class", type=int, nargs=3, default=(24, 12, 24))
     p.add_argument("--rotate", default="so3")
+    p.add_argument("--family", default="cup", choices=FAMILIES)
     p.add_argument("--poses", type=int, default=200, help="random poses per shape for the expectation")
     p.add_argument("--render", action="store_true", help="also render every shape and its empty twin (64 px)")
     args = p.parse_args(argv)
     if not args.report:
         p.error("nothing to do: pass --report")
-    ds = SyntheticViews(args.root, args.split, args.num_per_class, args.seed, args.rotate, num_points=1024)
-    print(f"synthetic_views {args.split}: {len(ds)} shapes, rotate={args.rotate}, seed={args.seed}, cameras at "
+    ds = SyntheticViews(args.root, args.split, args.num_per_class, args.seed, args.rotate, num_points=1024,
+                        family=args.family)
+    print(f"synthetic_views ({args.family}) {args.split}: {len(ds)} shapes, rotate={args.rotate}, seed={args.seed}, cameras at "
           "distance 2.2. Seen: the line from the cup's floor centre to a camera clears the rim.\n")
     cols = ["layout", "M", f"seen ({len(ds)} shapes)", "whole detail seen", f"seen ({args.poses} random poses per shape)"]
     cols += ["render differs from the empty twin (>= 1 px, 64 px)"] if args.render else []
