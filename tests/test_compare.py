@@ -54,6 +54,8 @@ def test_paired_t_interval_and_wins_match_scipy(tmp_path, capsys):
     assert side["seeds"] == [0, 1, 2, 3] and side["values"] == [LEARNED[s] for s in range(4)]
     assert side["ahead"] == 3 and side["behind"] == 1 and side["differs_in"] == ["selector.name"]
     assert side["low"] == pytest.approx(ci[0]) and side["high"] == pytest.approx(ci[1])
+    assert side["also_values"]["test_detail_seen"] == [LEARNED[s] / 2 for s in range(4)]
+    assert "| 3 | 0.4000 | 0.3000 | 0.2000 | 0.1500 |" in out  # per seed: the metric, then --also, per side
     assert (tmp_path / "c" / "compare.md").read_text().startswith("# Comparison")
 
 

@@ -311,7 +311,8 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
             values = [_value(side.runs[s], metric) for s in seeds]
             entry.update(seeds=seeds, values=values, mean=mean_sd(values)[0], sd=mean_sd(values)[1],
                          paths=[str(side.runs[s].path) for s in seeds],
-                         also={k: mean_sd([_value(side.runs[s], k) for s in seeds]) for k in also})
+                         also={k: mean_sd([_value(side.runs[s], k) for s in seeds]) for k in also},
+                         also_values={k: [_value(side.runs[s], k) for s in seeds] for k in also})
             rows.append(entry)
         result["groups"].append({"group": g, "sides": rows})
     return result
@@ -342,10 +343,13 @@ def to_markdown(result: dict) -> str:
             lines.append(f"| {s['label']} | {len(s['seeds'])} | {_cell(s['mean'], s['sd'])} | "
                          + "".join(f"{_cell(*s['also'][k])} | " for k in also)
                          + f"{vs} | {ci} | {wins} | {', '.join(s['commits']) or '-'} |")
-        lines += ["", "Per seed:", "", "| seed | " + " | ".join(s["label"] for s in sides) + " |",
-                  "|---|" + "---|" * len(sides)]
+        columns = [(s, None) for s in sides] + [(s, k) for k in also for s in sides]
+        lines += ["", f"Per seed ({metric}{', then ' + ', '.join(also) if also else ''}):", "",
+                  "| seed | " + " | ".join(s["label"] + (f" {k}" if k else "") for s, k in columns) + " |",
+                  "|---|" + "---|" * len(columns)]
         for seed in seeds:
-            cells = [f"{s['values'][s['seeds'].index(seed)]:.4f}" if seed in s["seeds"] else "-" for s in sides]
+            cells = [(f"{(s['also_values'][k] if k else s['values'])[s['seeds'].index(seed)]:.4f}"
+                      if seed in s["seeds"] else "-") for s, k in columns]
             lines.append(f"| {seed} | " + " | ".join(cells) + " |")
         for s in sides[1:]:
             keys = _by_option(s["differs_in"])
