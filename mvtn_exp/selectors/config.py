@@ -75,7 +75,7 @@ class SelectorConfig(OptionConfig):
         return False
 
 
-GRADIENTS = ("autograd", "smoothed")  # how G gets its gradient (engine/view_gradient.py)
+GRADIENTS = ("autograd", "smoothed", "search")  # how G gets its gradient (engine/view_gradient.py)
 LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
 WARMUP_VIEWS = ("u0", "random", "spherical")
 BN_SCOPES = ("all", "eval")  # what re-estimated BatchNorm statistics serve (engine/precise_bn.py)
@@ -98,8 +98,11 @@ class LearnedSelectorConfig(SelectorConfig):
     ``grad``: ``autograd`` (the paper's: through the differentiable renderer) or ``smoothed`` (the
     task loss smoothed over the views by a Gaussian of ``probe_sigma`` degrees, estimated from
     ``probe_pairs`` antithetic pairs of renders every ``probe_every`` steps; any renderer).
+    ``search``: C's loss read at ``search_views`` candidate directions over the sphere every
+    ``search_every`` steps, each view pulled towards the best candidate near it with weight
+    ``search_weight`` (``selectors/search.py``; any renderer).
     ``loss``: what G minimises: ``task`` (the paper's: C's loss) or ``centered_logit``
-    (``mean_c z_c - z_y``; needs ``grad=smoothed``). ``flip_explore``: for the first
+    (``mean_c z_c - z_y``; needs ``grad=smoothed`` or ``search``). ``flip_explore``: for the first
     ``flip_epochs`` epochs each view is rendered from its antipode with this probability, and a
     view whose antipode had the lower loss turns round (0: off; ``selectors/polarity.py``).
     ``bn_recalibrate``: before each validation C's BatchNorm statistics are re-estimated over this
@@ -123,6 +126,9 @@ class LearnedSelectorConfig(SelectorConfig):
     probe_pairs: int = 2
     probe_sigma: float = 10.0
     probe_every: int = 1
+    search_views: int = 12
+    search_every: int = 1
+    search_weight: float = 1.0
     flip_explore: float = 0.0
     flip_epochs: int = 10
     bn_recalibrate: int = 0
@@ -132,6 +138,7 @@ class LearnedSelectorConfig(SelectorConfig):
     # keys that set how G trains, not what the model is: they may change when a run is resumed
     training_keys: ClassVar[tuple] = ("lr", "beta1", "clip", "stop_epoch", "warmup_epochs", "warmup_views",
                                       "warmup_num_views", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every",
+                                      "search_views", "search_every", "search_weight",
                                       "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
                                       "race_z", "race_mode", "cache")
 
@@ -154,9 +161,15 @@ class LearnedSelectorConfig(SelectorConfig):
                                  "selector.warmup_epochs >= 1")
         one_of("selector.grad", self.grad, GRADIENTS)
         one_of("selector.loss", self.loss, LOSSES)
-        if self.loss != "task" and self.grad != "smoothed":
-            raise ValueError(f"selector.loss={self.loss}: G's own loss is estimated from perturbed renders; it needs "
-                             "selector.grad=smoothed (autograd trains G on C's loss)")
+        if self.loss != "task" and self.grad == "autograd":
+            raise ValueError(f"selector.loss={self.loss}: G's own loss is read from extra renders; it needs "
+                             "selector.grad=smoothed or search (autograd trains G on C's loss)")
+        at_least("selector.search_views", self.search_views, 1)
+        at_least("selector.search_every", self.search_every, 1)
+        at_least("selector.search_weight", self.search_weight, 0.0, strict=True)
+        if self.grad == "search" and self.flip_explore > 0:
+            raise ValueError("selector.grad=search with selector.flip_explore: the search already looks all round; "
+                             "set selector.flip_explore=0")
         at_least("selector.probe_pairs", self.probe_pairs, 1)
         at_least("selector.probe_sigma", self.probe_sigma, 0.0, strict=True)
         at_least("selector.probe_every", self.probe_every, 1)
@@ -186,8 +199,11 @@ class LearnedSelectorConfig(SelectorConfig):
 
     def training(self):
         from .probes import ProbeTraining
+        from .search import SearchTraining
         from .training import LearnedTraining
 
+        if self.grad == "search":
+            return SearchTraining
         return ProbeTraining if (self.grad == "smoothed" or self.flip_explore > 0) else LearnedTraining
 
     def kept_points(self) -> Optional[int]:

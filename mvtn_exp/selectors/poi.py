@@ -212,8 +212,9 @@ class PoiConfig(LearnedSelectorConfig):
         if (self.hypotheses > 1) != (self.race_epochs > 0):
             raise ValueError(f"selector.hypotheses={self.hypotheses} with selector.race_epochs={self.race_epochs}: "
                              "set both (hypotheses >= 2 and race_epochs >= 1) or neither (hypotheses=1 race_epochs=0)")
-        if self.hypotheses > 1 and self.flip_explore > 0:
-            raise ValueError("selector.hypotheses with selector.flip_explore: choose one way to explore")
+        if self.hypotheses > 1 and (self.flip_explore > 0 or self.grad == "search"):
+            raise ValueError("selector.hypotheses with selector.flip_explore or selector.grad=search: choose one way "
+                             "to explore")
         if self.from_ckpt and self.hypotheses > 1:
             raise ValueError("selector.from_ckpt with selector.hypotheses > 1: a transferred G is frozen, it races "
                              "nothing")
