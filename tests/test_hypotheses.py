@@ -183,3 +183,23 @@ def test_pooled_exploring_run_trains_and_decides(tmp_path):
     assert first["hypothesis_active"] == min(range(2), key=lambda h: first["hypothesis_losses"][h])
     separate = train(tiny(cache, epochs=1, **HYP), tmp_path / "separate")
     assert abs(separate["history"][0]["train_loss"] - first["train_loss"]) > 1e-6
+
+
+def test_descriptor_subsets_feed_only_their_columns():
+    from mvtn_exp.selectors.poi import DESCRIPTORS, PointOfInterestSelector, descriptor_columns, invariant_descriptors
+
+    assert descriptor_columns(DESCRIPTORS, (16, 48)) == list(range(11))
+    assert descriptor_columns(["concavity"], (16, 48)) == [2, 7]
+    assert descriptor_columns(["radius", "flatness"], (16,)) == [0, 4, 5]
+    with pytest.raises(ValueError, match="selector.descriptors"):
+        descriptor_columns([], (16,))
+    torch.manual_seed(0)
+    points = torch.randn(3, 64, 3)
+    full = PointOfInterestSelector(1, ks=(8, 16))
+    only = PointOfInterestSelector(1, ks=(8, 16), descriptors=("concavity",))
+    assert full.scorer[0].num_features == 11 and only.scorer[0].num_features == 2
+    seen = {}
+    only.scorer[0].register_forward_hook(lambda m, i, o: seen.setdefault("x", i[0]))
+    only.train()(points)
+    p = points - points.mean(1, keepdim=True)
+    torch.testing.assert_close(seen["x"], invariant_descriptors(p, (8, 16))[..., [2, 7]].reshape(-1, 2))

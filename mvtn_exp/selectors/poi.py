@@ -34,10 +34,13 @@ Descriptors per point ``p`` (centred at the cloud's mean), for each ``k`` in ``k
 ``|c - p|``, and the two smallest PCA eigenvalue ratios of the neighbourhood (flatness); plus
 ``|p|``. All are divided by the cloud's RMS radius. Being rotation invariant, they are computed
 once per shape and looked up at later steps (``cache`` shapes kept; ``invariant_cache.py``).
+``descriptors`` keeps a subset by name (``DESCRIPTORS``: ``radius`` = ``|p|``, ``spacing``,
+``concavity`` = ``(c - p) . p / |p|``, ``offset`` = ``|c - p|``, ``flatness``; all by default),
+to measure what each brings.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from typing import TYPE_CHECKING, Optional, Sequence
 
@@ -79,6 +82,21 @@ def invariant_descriptors(points: Tensor, ks: Sequence[int] = (16, 48)) -> Tenso
     return torch.cat(feats, -1)
 
 
+DESCRIPTORS = ("radius", "spacing", "concavity", "offset", "flatness")
+
+
+def descriptor_columns(names: Sequence[str], ks: Sequence[int]) -> list[int]:
+    """Columns of ``invariant_descriptors(.., ks)`` holding the named descriptors (``DESCRIPTORS``)."""
+    unknown = [n for n in names if n not in DESCRIPTORS]
+    if unknown or not names:
+        raise ValueError(f"selector.descriptors={list(names)}: expected a non-empty subset of {', '.join(DESCRIPTORS)}")
+    per_k = {"spacing": [0], "concavity": [1], "offset": [2], "flatness": [3, 4]}
+    cols = [0] if "radius" in names else []
+    for j in range(len(ks)):
+        cols += [1 + 5 * j + c for n in DESCRIPTORS[1:] if n in names for c in per_k[n]]
+    return cols
+
+
 def direction_to_angles(d: Tensor) -> tuple[Tensor, Tensor]:
     """Directions ``[..., 3]`` (any length) -> azimuth, elevation in degrees (finite gradients at the poles)."""
     x, y, z = d.unbind(-1)
@@ -102,7 +120,7 @@ class PointOfInterestSelector(ViewSelector):
 
     def __init__(self, views: int, hidden: int = 64, ks: Sequence[int] = (16, 48), gain: float = 8.0,
                  distance: float = 2.2, sphere: str = "equal_area", cache: int = 0, learn_gain: bool = False,
-                 hypotheses: int = 1, **_ignored) -> None:
+                 hypotheses: int = 1, descriptors: Sequence[str] = DESCRIPTORS, **_ignored) -> None:
         super().__init__(views)
         if not gain > 0:
             raise ValueError(f"PointOfInterestSelector: gain must be > 0, got {gain!r}")
@@ -127,7 +145,8 @@ class PointOfInterestSelector(ViewSelector):
         a, e = torch.deg2rad(azim0[0]), torch.deg2rad(elev0[0])
         self.register_buffer("d0", torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1),
                              persistent=False)  # [H * M, 3]
-        f = 1 + 5 * len(self.ks)
+        self.register_buffer("columns", torch.tensor(descriptor_columns(descriptors, self.ks)), persistent=False)
+        f = len(self.columns)
         self.scorer = nn.Sequential(nn.BatchNorm1d(f), nn.Linear(f, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),
                                     nn.Linear(hidden, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),
                                     nn.Linear(hidden, M * H))
@@ -150,7 +169,7 @@ class PointOfInterestSelector(ViewSelector):
         """``[B, N, 3]`` -> (centred points ``[B, N, 3]``, softmax weights over the points ``[B, N, H * M]``)."""
         p = points - points.mean(1, keepdim=True)
         with torch.no_grad():
-            desc = self.descriptors(p.detach())  # [B, N, F]
+            desc = self.descriptors(p.detach())[..., self.columns]  # [B, N, F]
         B, N, F = desc.shape
         s = self.scorer(desc.reshape(B * N, F)).reshape(B, N, self.views * self.hypotheses)
         return p, torch.softmax(s, dim=1)
@@ -199,9 +218,11 @@ class PoiConfig(LearnedSelectorConfig):
     race_epochs: int = 0
     race_z: Optional[float] = 3.0
     race_mode: str = "separate"
+    descriptors: list[str] = field(default_factory=lambda: list(DESCRIPTORS))
 
     def validate(self) -> "PoiConfig":
         super().validate()
+        descriptor_columns(self.descriptors, (16, 48))
         at_least("selector.gain", self.gain, 0.0, strict=True)
         at_least("selector.cache", self.cache, 0)
         at_least("selector.hypotheses", self.hypotheses, 1)
@@ -228,7 +249,8 @@ class PoiConfig(LearnedSelectorConfig):
 
     def build(self, views: int, seed: int, point_encoder=None) -> PointOfInterestSelector:
         return PointOfInterestSelector(views, distance=self.distance, gain=self.gain, sphere=self.sphere,
-                                       cache=self.cache, learn_gain=self.learn_gain, hypotheses=self.hypotheses)
+                                       cache=self.cache, learn_gain=self.learn_gain, hypotheses=self.hypotheses,
+                                       descriptors=tuple(self.descriptors))
 
     def modules(self, views: int) -> dict:
         from mvtn_exp.selectors.hypotheses import HypothesisRace
