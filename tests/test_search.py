@@ -47,8 +47,8 @@ def test_g_follows_the_search_to_the_best_direction(tmp_path, monkeypatch):
 
     monkeypatch.setattr(search.SearchTraining, "score", score)
     cfg = tiny_config(str(tmp_path / "cache"), **{"selector.name": "mvtn_spherical", "selector.grad": "search",
-                                                  "selector.lr": 0.05, "views": 1, "epochs": 4,
-                                                  "dataset.num_per_class": [8, 2, 2]})
+                                                  "selector.lr": 0.05, "views": 1, "epochs": 3, "image_size": 16,
+                                                  "dataset.num_per_class": [6, 1, 1]})
     metrics = train(cfg, tmp_path / "run")
     offset = json.loads((tmp_path / "run" / "metrics.json").read_text())["test_view_offset_elev"]
     state = checkpoint.load(tmp_path / "run" / "best.pt")
