@@ -103,3 +103,14 @@ def camera_to_ndc(cam: torch.Tensor, cameras: Cameras, znear: float) -> tuple[to
     else:
         xy = cam[..., :2] * (cameras.focal() / z.clamp(min=znear)).unsqueeze(-1)
     return xy, z
+
+
+def view_directions(azim: torch.Tensor, elev: torch.Tensor) -> torch.Tensor:
+    """Degrees ``[...]`` -> unit directions from the origin to the camera ``[..., 3]`` (Y-up, as above)."""
+    a, e = torch.deg2rad(azim), torch.deg2rad(elev)
+    return torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1)
+
+
+def direction_angles(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit directions ``[..., 3]`` -> the azimuth, elevation in degrees of a camera there."""
+    return torch.rad2deg(torch.atan2(d[..., 0], d[..., 2])), torch.rad2deg(torch.asin(d[..., 1].clamp(-1.0, 1.0)))

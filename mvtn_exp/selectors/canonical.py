@@ -21,6 +21,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ..render.cameras import direction_angles, view_directions
+
 CANONICAL = ("none", "pca")
 
 
@@ -41,11 +43,8 @@ def world_views(views, R: Tensor):
     """Views ``(azim, elev, dist)`` ``[B, M]`` (degrees) chosen in the canonical frame ``R [B, 3, 3]``
     -> the same camera directions in the world frame (``R^T d``); the distance is unchanged."""
     azim, elev, dist = views
-    a, e = torch.deg2rad(azim), torch.deg2rad(elev)
-    d = torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1)  # [B, M, 3]
-    w = torch.einsum("bji,bmj->bmi", R.to(d), d)
-    return (torch.rad2deg(torch.atan2(w[..., 0], w[..., 2])),
-            torch.rad2deg(torch.asin(w[..., 1].clamp(-1.0, 1.0))), dist)
+    d = view_directions(azim, elev)  # [B, M, 3]
+    return (*direction_angles(torch.einsum("bji,bmj->bmi", R.to(d), d)), dist)
 
 
 class CanonicalPose(nn.Module):

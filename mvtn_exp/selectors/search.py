@@ -30,20 +30,11 @@ from torch import Tensor
 
 from ..engine import view_gradient
 from ..render import layouts
+from ..render.cameras import direction_angles as to_angles
+from ..render.cameras import view_directions as unit_directions
 from ..tasks import classification
 from ..tasks.robustness import random_rotations
 from .training import LearnedTraining, Step
-
-
-def unit_directions(azim: Tensor, elev: Tensor) -> Tensor:
-    """Degrees ``[...]`` -> unit camera directions ``[..., 3]`` (Y-up, ``render/cameras.py``)."""
-    a, e = torch.deg2rad(azim), torch.deg2rad(elev)
-    return torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1)
-
-
-def to_angles(d: Tensor) -> tuple[Tensor, Tensor]:
-    """Unit directions ``[..., 3]`` -> azimuth, elevation in degrees."""
-    return torch.rad2deg(torch.atan2(d[..., 0], d[..., 2])), torch.rad2deg(torch.asin(d[..., 1].clamp(-1.0, 1.0)))
 
 
 def candidates(K: int, B: int, distance: float, generator: torch.Generator, device) -> tuple:

@@ -21,11 +21,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-
-def directions(azim: torch.Tensor, elev: torch.Tensor) -> torch.Tensor:
-    """Degrees ``[B, M]`` -> unit camera directions ``[B, M, 3]`` (Y-up, ``render/cameras.py``)."""
-    a, e = torch.deg2rad(azim), torch.deg2rad(elev)
-    return torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1)
+from mvtn_exp.render.cameras import view_directions as directions
 
 
 def capacity_loss(views, axis: torch.Tensor) -> torch.Tensor:
