@@ -168,3 +168,18 @@ def test_run_mode_checks_every_side_before_training(tmp_path, capsys):
         err = capsys.readouterr().err
         assert e.value.code == 2 and err.startswith(start) and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "c").exists()
+
+
+def test_a_side_whose_every_run_failed_is_listed_and_the_rest_compared(tmp_path, capsys):
+    _two_sides(tmp_path)
+    for s in range(3):  # a third configuration (views=4) all of whose runs failed, seen first
+        d = tmp_path / "a" / f"s{s}"
+        (d / ".hydra").mkdir(parents=True)
+        (d / ".hydra" / "config.yaml").write_text(json.dumps(_config(seed=s, views=4)))
+        (d / "status.json").write_text(json.dumps({"status": "error", "error": "cuda and cpu"}))
+    main([str(tmp_path / "a"), str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c")])
+    cap = capsys.readouterr()
+    assert "3 run(s) not finished" in cap.err and cap.out.count(": error: cuda and cpu") == 3
+    sides = json.loads((tmp_path / "c" / "compare.json").read_text())["groups"][0]["sides"]
+    assert [s["label"] for s in sides] == ["selector.name=spherical", "selector.name=poi"]
+    assert sides[1]["diff"] == pytest.approx(sum(LEARNED[s] - FIXED[s] for s in FIXED) / 4)

@@ -64,6 +64,14 @@ def test_race_picks_the_lowest_mean_loss_and_clears():
     assert bool(race.done)
 
 
+def test_race_sums_stay_on_the_models_device():
+    # the race's buffers move with the model (.to(cuda)); a loss recorded from that device must not
+    # be sent to the CPU first (the recipe failed on CUDA: "found at least two devices")
+    race = HypothesisRace(3).to("meta")
+    race.record(torch.zeros(4, 3, device="meta", dtype=torch.float32))
+    assert race.sums.device.type == "meta" and race.sums.dtype == torch.float64
+
+
 def test_a_clear_lead_is_judged_on_paired_differences():
     """The same shapes under each hypothesis: a small lead that every shape shows is clear, though
     the shapes' losses spread far more than the lead; a lead of the same mean that is noise is not.

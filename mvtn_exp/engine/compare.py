@@ -212,7 +212,8 @@ def make_sides(runs: list[Run], where: list[str] | None = None, group: str | Non
             order = sorted(sides, key=rank.get)
         built = []
         finished = {i: [r for r in sides[i] if r.status == "ok"] for i in order}
-        reference_settings = {i: finished[i][0].settings if finished[i] else sides[i][0].settings for i in order}
+        order = [i for i in order if finished[i]]  # a side none of whose runs finished: listed under not finished
+        reference_settings = {i: finished[i][0].settings for i in order}
         keys = sorted({k for i in order for j in order for k in differing(reference_settings[i], reference_settings[j])
                        if k != group})
         for i in order:

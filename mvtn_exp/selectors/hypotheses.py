@@ -52,7 +52,7 @@ class HypothesisRace(nn.Module):
     def record(self, loss: Tensor) -> None:
         if loss.dim() != 2 or loss.shape[1] != self.hypotheses:
             raise ValueError(f"HypothesisRace.record: expected losses [B, {self.hypotheses}], got {list(loss.shape)}")
-        loss = loss.detach().double().cpu()
+        loss = loss.detach().to(self.sums)  # the buffers' device and dtype (float64), wherever the model is
         self.count += loss.shape[0]
         self.sums += loss.sum(0)
         self.products += loss.T @ loss
@@ -69,7 +69,7 @@ class HypothesisRace(nn.Module):
             diff = means - means[a]  # mean of l_b - l_a per b
             var = (second.diag() - 2 * second[a] + second[a, a] - diff ** 2).clamp_min(0) * n / (n - 1)
             se = (var / n).sqrt()
-            others = torch.arange(self.hypotheses) != a
+            others = torch.arange(self.hypotheses, device=means.device) != a
             clear = bool((diff[others] > z * se[others]).all())
         self.count.zero_()
         self.sums.zero_()
