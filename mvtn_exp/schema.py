@@ -212,7 +212,8 @@ class TrainConfig:
     ``threads``: torch's CPU threads for this process (null: torch's default, or under the joblib
     launcher the cores divided by the jobs that run at once); ``precision``: fp32, or autocast of
     the multi-view network C in bf16 or fp16 (CUDA only; G and the renderer stay float32:
-    ``models/precision.py``).
+    ``models/precision.py``); ``overwrite``: a new run may replace the run in its ``hydra.run.dir``
+    (one holding a ``last.pt``; else refused: ``engine/run_dir.py``).
     """
 
     views: int = 4
@@ -224,6 +225,7 @@ class TrainConfig:
     ckpt_path: Optional[str] = None
     threads: Optional[int] = None
     precision: str = "fp32"
+    overwrite: bool = False
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # renderer.image_size follows the top-level image_size (an interpolation, resolved at compose time);
     # training defaults to soft smooth rendering (conf/renderer/soft.yaml: camera gradients for G)

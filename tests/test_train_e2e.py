@@ -313,6 +313,11 @@ def test_cli_sigterm_keeps_the_last_epoch_and_says_how_to_resume(cache, tmp_path
     line = err.strip().splitlines()[-1]
     assert line.startswith("mvtn-train: interrupted by SIGTERM") and f"ckpt_path={run / 'last.pt'}" in line
     assert torch.load(run / "last.pt", weights_only=True)["epoch"] >= 1 and not (run / "metrics.json").exists()
+    assert json.loads((run / "status.json").read_text())["status"] == "interrupted"
+    done = torch.load(run / "last.pt", weights_only=True)["epoch"]
+    r = _cli([f"ckpt_path={run / 'last.pt'}", f"epochs={done + 1}"], tmp_path)  # the resume that finishes it
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads((run / "status.json").read_text()) == {"status": "ok", "error": ""}  # the last outcome
 
 
 def test_cli_multirun_keeps_jobs_apart_and_fails_loudly(tmp_path):

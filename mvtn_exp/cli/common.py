@@ -181,14 +181,9 @@ def check_writable(prog: str, argv: list[str], default: str = "outputs") -> None
 def mark_failed(run_dir: Path, status: str, error: str) -> None:
     """``<run_dir>/status.json`` = ``{"status", "error"}``: a run dir left by a failed command says so
     (the sweep summary reads the same file)."""
-    import json
+    from ..engine.run_dir import write_status
 
-    from ..engine.sweep import STATUS_FILE
-
-    try:
-        (Path(run_dir) / STATUS_FILE).write_text(json.dumps({"status": status, "error": error}))
-    except OSError:
-        pass  # an unwritable run dir: the message on stderr is all there is
+    write_status(run_dir, status, error)
 
 
 def project_help(prog: str, config_name: str, schema, config_module: str = CONF_MODULE,

@@ -7,6 +7,7 @@ Examples: ``mvtn-train``, ``mvtn-train +experiment=synthetic_circular views=1``,
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import sys
 import time
@@ -19,6 +20,7 @@ from omegaconf import OmegaConf
 
 from ..data.shapes import ShapeError
 from ..engine import checkpoint
+from ..engine import run_dir as run_dir_state
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
 from ..schema import TrainConfig, register_configs
@@ -95,15 +97,21 @@ def _app(cfg) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _raise_interrupted)
     try:
+        if int(os.environ.get("RANK", "0")) == 0:
+            run_dir_state.lock(run_dir)  # held since main() for a named run dir; sweep jobs take theirs here
+    except run_dir_state.RunDirBusy as exc:
+        print(f"mvtn-train: error: {exc}", file=sys.stderr)
+        if hc.mode == RunMode.MULTIRUN:
+            return
+        sys.exit(2)
+    try:
         requeued = None if cfg.ckpt_path else requeued_checkpoint(run_dir)
         if requeued is not None:
             cfg.ckpt_path = str(requeued)
             with open(run_dir / "train.log", "a") as f:
                 f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] requeued: going on from {requeued}\n")
-        if cfg.ckpt_path:
+        if cfg.ckpt_path:  # (a finished run's metrics.json is kept aside once the resume is accepted)
             tcfg = resume_config(cfg, list(hc.overrides.task))
-            if (run_dir / "metrics.json").is_file():  # a finished run goes on: keep its results
-                (run_dir / "metrics.json").rename(run_dir / f"metrics-before-resume-{time.strftime('%Y%m%d-%H%M%S')}.json")
         else:
             tcfg = OmegaConf.to_object(cfg)
         if tcfg.threads is None:  # parallel local sweep: split the cores between the jobs
@@ -116,10 +124,18 @@ def _app(cfg) -> None:
         print(f"mvtn-train: interrupted by {exc}; the last finished epoch is saved, {how}", file=sys.stderr)
         with open(run_dir / "train.log", "a") as f:
             f.write(f"mvtn-train: interrupted by {exc}; {how}\n")
+        mark_failed(run_dir, "interrupted", how)
         sys.exit(128 + exc.signum)
     except (CheckpointMismatch, OSError, NotImplementedError, ShapeError, ValueError, TrainingDiverged) as exc:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise  # the full traceback, on request
+        if cfg.ckpt_path and isinstance(exc, CheckpointMismatch):  # a refused resume changes nothing on disk
+            print(f"mvtn-train: error: {exc}", file=sys.stderr)
+            if Path(hc.output_subdir or "").name.startswith("resumed-"):
+                shutil.rmtree(run_dir / hc.output_subdir, ignore_errors=True)  # this command's Hydra record
+            if hc.mode == RunMode.MULTIRUN:
+                return
+            sys.exit(2)
         kind = "training diverged" if isinstance(exc, TrainingDiverged) else "error"
         print(f"mvtn-train: {kind}: {exc}", file=sys.stderr)
         with open(run_dir / "train.log", "a") as f:  # the run's record keeps the reason too
@@ -203,12 +219,34 @@ def shared_run_dir(argv: list[str]) -> list[str]:
     return argv
 
 
+TRUE = ("true", "yes", "on", "1")
+
+
+def claim_run_dir(argv: list[str]) -> None:
+    """A single run into a named folder (``hydra.run.dir=``, or the folder of ``ckpt_path`` when
+    resuming in place), before Hydra writes its record there: a new run into a folder holding a
+    run's ``last.pt`` is refused unless ``overwrite=true``, and the folder's lock is taken for the
+    run's life (a second run into a busy folder: one line, exit 2; ``engine/run_dir.py``)."""
+    given = dict(a.lstrip("+").split("=", 1) for a in argv if "=" in a)
+    folder = given.get("hydra.run.dir")
+    if folder is None or any(a in ("-m", "--multirun") for a in argv) or int(os.environ.get("RANK", "0")) != 0:
+        return
+    try:
+        if given.get("ckpt_path", "null") in ("null", ""):
+            run_dir_state.check_new_run(folder, given.get("overwrite", "false").lower() in TRUE)
+        run_dir_state.lock(folder)
+    except (run_dir_state.RunDirBusy, run_dir_state.RunDirTaken) as exc:
+        print(f"mvtn-train: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
 def main() -> None:
     if sys.argv[1:2] == ["--summary"]:
         sys.exit(summary(sys.argv[2:]))
     check_overrides("mvtn-train", "train", TrainConfig, sys.argv[1:], validate=TrainConfig.validate)
     sys.argv[1:] = resume_in_place(sys.argv[1:])
     check_writable("mvtn-train", sys.argv[1:])
+    claim_run_dir(sys.argv[1:])
     sys.argv[1:] = shared_run_dir(sys.argv[1:])
     _app()
 

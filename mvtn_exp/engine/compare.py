@@ -30,7 +30,7 @@ from scipy import stats
 
 from .sweep import STATUS_FILE
 
-RUN_LOCAL = ("seed", "device", "ckpt_path", "threads", "logger", "paths", "dataset.root", "dataset.cache_dir",
+RUN_LOCAL = ("seed", "device", "ckpt_path", "threads", "overwrite", "logger", "paths", "dataset.root", "dataset.cache_dir",
              "dataset.num_workers")
 PROTECTED = ("dataset", "epochs")  # data, its splits and the training length
 

@@ -11,9 +11,10 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
+from .run_dir import STATUS_FILE  # status.json: a run's last outcome
+
 COLUMNS = ("test_acc", "test_mean_class_acc", "best_val_acc", "mean_epoch_seconds", "test_view_offset_azim",
            "test_view_offset_elev", "test_view_spread", "test_view_separation")
-STATUS_FILE = "status.json"  # written by a job that failed (diverged, bad input)
 
 
 def _overrides(job_dir: Path) -> list[str]:

@@ -30,6 +30,7 @@ from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
 from . import checkpoint, cost, distributed, loaders, precise_bn, seeding
+from . import run_dir as run_dir_state
 from .loaders import eval_loader, train_loader
 from .ema import ModelEMA
 from .view_stats import view_stats
@@ -305,7 +306,11 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, sca
     if list(state.get("classes", classes)) != classes:
         raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
                                             f"{state['classes']} but the dataset has {classes}")
-    model.load_state_dict(state["model"])
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:  # weights of another shape: one line, not a traceback
+        raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r}: weights do not fit the model its config "
+                                            f"builds ({' '.join(str(exc).split())[:300]})") from exc
     if "scaler" in state:
         scaler.load_state_dict(state["scaler"])
     if ema is not None:
@@ -345,6 +350,7 @@ def write_results(run_dir: Path, metrics: dict) -> Path:
                   title=f"{metrics.get('split', 'test')}: acc {metrics['test_acc']:.3f}")
     path = run_dir / "metrics.json"
     path.write_text(json.dumps(metrics, indent=2))
+    run_dir_state.write_status(run_dir, "ok")
     return path
 
 
@@ -384,8 +390,8 @@ def epoch_line(epoch: int, cfg: TrainConfig, tr: dict, val: dict, val_ema, impro
 
 
 def prepare_run(cfg: TrainConfig, run_dir: Path, world: distributed.World):
-    """The device, the run's provenance record, and a warning for a learned G on a renderer
-    without a useful camera gradient."""
+    """The device, the run's provenance record (written by ``start_record`` once the run is
+    accepted), and a warning for a learned G on a renderer without a useful camera gradient."""
     if world.enabled:
         check_world(cfg, world)
     device = torch.device(distributed.init(world, cfg.device))
@@ -394,13 +400,22 @@ def prepare_run(cfg: TrainConfig, run_dir: Path, world: distributed.World):
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     origin = {**provenance(str(device)), "world_size": world.size}
-    if world.main:
-        (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
     problem = (cfg.renderer.camera_gradient_problem()
                if cfg.selector.uses_camera_gradient() and cfg.dataset.shape == "mesh" else None)
     if problem:
         log.warning("selector=%s with %s", cfg.selector.name, problem)
     return device, origin
+
+
+def start_record(run_dir: Path, origin: dict, resumed: bool) -> None:
+    """The run is accepted and starts training: a resumed run's earlier ``metrics.json`` is kept
+    aside (``metrics-before-resume-<time>.json``), the folder's earlier outcome cleared, and this
+    run's provenance written. Nothing before this point writes into a resumed run's folder, so a
+    refused resume changes nothing there."""
+    if resumed and (run_dir / "metrics.json").is_file():
+        (run_dir / "metrics.json").rename(run_dir / f"metrics-before-resume-{time.strftime('%Y%m%d-%H%M%S')}.json")
+    run_dir_state.clear_status(run_dir)
+    (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
 
 
 def test_best(model, cfg: TrainConfig, run_dir: Path, datasets: dict, classes: list, world, device, timer, costs_in):
@@ -485,6 +500,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
     if resume is not None:
         start, best_acc, best_epoch, skipped, history, step = _resume(cfg, run_dir, model, opt, sched, resume, scaler,
                                                                       ema, classes, world)
+    if world.main:
+        start_record(run_dir, origin, resumed=resume is not None)
 
     def payload(epoch):
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
