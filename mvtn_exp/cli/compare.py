@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import json
 import subprocess
 import sys
 import time
@@ -67,14 +68,21 @@ def plan_runs(sides: list[str], seeds: list[int], common: list[str], out: Path, 
     return tasks
 
 
+def _status(run_dir: Path) -> str:
+    try:
+        return str(json.loads((run_dir / "status.json").read_text()).get("status"))
+    except (OSError, ValueError, AttributeError):
+        return "unreadable"
+
+
 def _train(run_dir: Path, argv: list[str], log: Path, threads: int | None) -> str:
     """One ``mvtn-train`` run into ``run_dir`` (or its resumption); returns ok | failed | done."""
     if (run_dir / "metrics.json").is_file():
         return "done"
     if (run_dir / "last.pt").is_file():  # interrupted: go on from the last finished epoch
         argv = [f"ckpt_path={run_dir / 'last.pt'}"]
-    elif (run_dir / "status.json").is_file():
-        return "failed"
+    elif (run_dir / "status.json").is_file() and _status(run_dir) != "interrupted":
+        return "failed"  # (interrupted before its first epoch ended: started again)
     env = dict(os.environ)
     if threads:
         env["OMP_NUM_THREADS"] = str(threads)
