@@ -218,3 +218,35 @@ def test_retrieval_database_is_the_whole_official_train_split(tree, tmp_path):
     assert sorted(db[i]["name"] for i in range(len(db))) == sorted([train[i]["name"] for i in range(len(train))]
                                                                   + [val[i]["name"] for i in range(len(val))])
     assert list(db.classes) == list(train.classes)
+
+
+def test_cache_is_keyed_by_root_and_contents_not_file_names(tmp_path):
+    """Same file names, other contents under another root: another cache, other data; a changed
+    file rebuilds too (the key holds the root and every file's size and modification time)."""
+    a = _tree(tmp_path / "A", broken=False)
+    b = tmp_path / "B"
+    for f in a.rglob("*.off"):  # B: the same names, every shape twice as long along x
+        v, faces = _read_off(f)
+        dst = b / f.relative_to(a)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        dst.write_text(_off(v * [2.0, 1.0, 1.0], faces))
+    test_a, test_b = _load(a, tmp_path, "test"), _load(a, tmp_path, "test")
+    assert test_a.cache_path == test_b.cache_path  # same root, unchanged files: the cache is reused
+    test_b = _load(b, tmp_path, "test")
+    assert test_b.cache_path != test_a.cache_path
+    extent = lambda ds: float(np.ptp(ds[0]["verts"].numpy()[:, 0]) / np.ptp(ds[0]["verts"].numpy()[:, 1]))
+    assert extent(test_b) == pytest.approx(2 * extent(test_a), rel=1e-4)
+    one = sorted((a / "airplane" / "test").glob("*.off"))[0]  # a file changed in place
+    v, faces = _read_off(one)
+    one.write_text(_off(v * [1.0, 3.0, 1.0], faces) + "\n")
+    assert _load(a, tmp_path, "test").cache_path != test_a.cache_path
+
+
+def _read_off(path):
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    head = lines[0][3:].split() or lines[1].split()
+    start = 1 if lines[0][3:].split() else 2
+    nv, nf = int(head[0]), int(head[1])
+    v = np.array([[float(x) for x in ln.split()] for ln in lines[start:start + nv]])
+    faces = [[int(x) for x in ln.split()[1:]] for ln in lines[start + nv:start + nv + nf]]
+    return v, faces

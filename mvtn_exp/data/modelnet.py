@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from .mesh_io import DatasetNotFound, ShapeFileError, check_mesh, normalize_unit_sphere, read_off, zup_to_yup
-from .packed import PACKED_ARRAYS, PackedShapes, cache_lock, load_npz, pack, sample_surface, save_npz_atomic, triangle_areas, validate
+from .packed import PACKED_ARRAYS, PackedShapes, cache_lock, files_fingerprint, load_npz, pack, sample_surface, save_npz_atomic, triangle_areas, validate
 
 log = logging.getLogger(__name__)
 
@@ -206,8 +206,7 @@ class ModelNetMeshes(PackedShapes):
         official = "test" if split == "test" else "train"
         settings = {"version": PREP_VERSION, "classes": classes, "split": official, "num_points": int(num_points),
                     "max_vertices": int(max_vertices), "seed": int(seed),
-                    "files": hashlib.sha1("\n".join(str(p.relative_to(root)) for p, _ in files[official]).encode())
-                    .hexdigest()}
+                    "files": files_fingerprint([p for p, _ in files[official]], root)}
         key = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
         name = f"modelnet{len(classes)}"
         self.cache_path = Path(cache_dir) / f"{name}_{official}_{key}.npz"

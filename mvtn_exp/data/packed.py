@@ -7,6 +7,7 @@ settings (or by another version) is never misread, it is rebuilt.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from contextlib import contextmanager
 import os
@@ -20,6 +21,18 @@ import torch
 from torch.utils.data import Dataset
 
 PACKED_ARRAYS = ("verts", "faces", "verts_per_shape", "faces_per_shape", "points", "labels", "names")
+
+
+def files_fingerprint(paths, root) -> str:
+    """What a cache built from ``paths`` (files under ``root``) was built from: a SHA-1 of the
+    resolved root and, per file, its path under the root, size and modification time (ns). A cache
+    keyed by it is rebuilt for another root (same file names, other contents) or a changed file."""
+    root = Path(root)
+    h = hashlib.sha1(str(root.resolve()).encode())
+    for p in paths:
+        st = Path(p).stat()
+        h.update(f"\n{Path(p).relative_to(root).as_posix()}\t{st.st_size}\t{st.st_mtime_ns}".encode())
+    return h.hexdigest()
 
 
 class CacheWarning(UserWarning):
