@@ -250,3 +250,18 @@ def test_presets_compose_and_state_their_measured_cost(name):
 
 def test_presets_are_the_three_documented():
     assert _options("preset") == ["balanced", "fast", "paper"]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+@pytest.mark.parametrize("cli, argv", [("train", []), ("eval", ["ckpt=x.pt"]), ("render", ["input=builtin:sphere"]),
+                                       ("bench", ["quick=true"])])
+def test_every_cli_refuses_cuda_on_a_cpu_build_in_one_line(cli, argv, tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", f"mvtn_exp.cli.{cli}", "device=cuda", *argv], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(err) == 1, r.stderr[-2000:]
+    assert err[0].startswith(f"mvtn-{cli}: config error") and "device='cuda': CUDA is not available" in err[0]
+    assert not list(tmp_path.iterdir())  # refused before any output folder was made

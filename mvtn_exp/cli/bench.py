@@ -20,6 +20,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
 from ..bench.render_bench import BenchOptions, run_bench
+from .common import check_overrides
 
 MALLOC_ENV = "MALLOC_MMAP_THRESHOLD_"
 MALLOC_VALUE = "65536"
@@ -46,6 +47,17 @@ class BenchAppConfig:
     progress: bool = True
     modules: bool = True
     scaling: bool = True
+
+    def validate(self) -> "BenchAppConfig":
+        from ..checks import at_least
+        from ..schema import check_device
+
+        check_device("device", self.device)
+        if self.threads is not None:
+            at_least("threads", self.threads, 1)
+        at_least("repeats", self.repeats, 1)
+        at_least("time_budget_s", self.time_budget_s, 0.0, strict=True)
+        return self
 
 
 ConfigStore.instance().store(name="bench_schema", node=BenchAppConfig)
@@ -87,8 +99,6 @@ def _reexec_with_pinned_malloc() -> None:
 def _app(cfg) -> None:
     obj: BenchAppConfig = OmegaConf.to_object(cfg)
     if obj.threads is not None:
-        if obj.threads < 1:
-            raise ValueError(f"threads={obj.threads}: expected >= 1 or null")
         torch.set_num_threads(obj.threads)
     opts = BenchOptions(quick=obj.quick, repeats=obj.repeats, device=obj.device, time_budget_s=obj.time_budget_s,
                         dense_max_pairs=obj.dense_max_pairs, seed=obj.seed, progress=obj.progress,
@@ -97,6 +107,7 @@ def _app(cfg) -> None:
 
 
 def main() -> None:
+    check_overrides("mvtn-bench", "bench", BenchAppConfig, sys.argv[1:], validate=BenchAppConfig.validate)
     _reexec_with_pinned_malloc()
     _app()
 

@@ -9,6 +9,7 @@ import logging
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import hydra
 import numpy as np
@@ -16,6 +17,7 @@ import torch
 from hydra.core.config_store import ConfigStore
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
+from tqdm.auto import tqdm
 
 from ..data import mesh_io
 from ..data.shapes import Meshes, PointClouds, ShapeError
@@ -47,6 +49,12 @@ class RenderAppConfig:
     seed: int = 0
     device: str = "cpu"
     renderer: RendererConfig = field(default_factory=RendererConfig)
+
+    def validate(self) -> "RenderAppConfig":
+        from ..schema import check_device
+
+        check_device("device", self.device)
+        return self
 
 
 ConfigStore.instance().store(name="render_schema", node=RenderAppConfig)
@@ -112,8 +120,14 @@ def render_file(cfg: RenderAppConfig, out_dir: Path) -> list[Path]:
     rcfg = RendererConfig(**{**OmegaConf.to_container(OmegaConf.structured(cfg.renderer)), "image_size": cfg.image_size})
     shape = load_shape(cfg, device)
     azim, elev, dist = view_angles(cfg, device)
-    with torch.no_grad():
-        out = MultiViewRenderer(rcfg).to(device)(shape, azim, elev, dist)
+    renderer = MultiViewRenderer(rcfg).to(device)
+    images, alpha = [], []
+    with torch.no_grad():  # one view at a time, with a progress bar on a terminal (large images take minutes)
+        for i in tqdm(range(azim.shape[1]), desc="render", unit="view", disable=None, leave=False):
+            out = renderer(shape, azim[:, i:i + 1], elev[:, i:i + 1], dist[:, i:i + 1])
+            images.append(out.images)
+            alpha.append(out.alpha)
+    out = SimpleNamespace(images=torch.cat(images, 1), alpha=torch.cat(alpha, 1))
     if float(out.alpha.max()) == 0.0:
         log.warning("%s: every view is empty (shape outside all views?)", cfg.input)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -141,7 +155,7 @@ def _app(cfg) -> None:
 
 
 def main() -> None:
-    check_overrides("mvtn-render", "render", RenderAppConfig, sys.argv[1:])
+    check_overrides("mvtn-render", "render", RenderAppConfig, sys.argv[1:], validate=RenderAppConfig.validate)
     _app()
 
 
