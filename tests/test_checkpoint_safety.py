@@ -93,3 +93,29 @@ def test_checkpoints_of_the_older_format_still_load(tmp_path):
     with pytest.raises(checkpoint.CheckpointMismatch, match="refused"):
         checkpoint.load(tmp_path / "obj.pt")
     assert not (tmp_path / "ran").exists()
+
+
+@pytest.mark.parametrize("content, what", [
+    (b'{"test_acc": 0.5}', "is a JSON or other text file (starts with '{\"test_acc\": 0.5}')"),
+    (b"", "is an empty file"),
+    (bytes(range(150, 250)), "is binary data of 100 bytes (starts with 96 97 98"),
+    (b"OFF\n3 1 0\n", "is a text file (starts with 'OFF"),
+])
+def test_a_file_that_is_no_checkpoint_is_named_for_what_it_is(tmp_path, content, what):
+    path = tmp_path / "last.pt"
+    path.write_bytes(content)
+    with pytest.raises(checkpoint.CheckpointMismatch, match="not a checkpoint") as e:
+        checkpoint.load(path)
+    assert what in str(e.value) and "\n" not in str(e.value)
+
+
+def test_an_npz_is_named_and_a_real_checkpoint_is_not(tmp_path):
+    import numpy as np
+
+    np.savez(tmp_path / "a.npz", x=np.zeros(3))
+    with pytest.raises(checkpoint.CheckpointMismatch, match=r"is a NumPy \.npz archive \(1 entries, e\.g\. 'x\.npy'\)"):
+        checkpoint.load(tmp_path / "a.npz")
+    checkpoint.save_atomic(tmp_path / "ok.pt", {"model": {}, "config": {}})
+    assert checkpoint.describe_non_checkpoint(tmp_path / "ok.pt") is None
+    torch.save({"model": {}, "config": {}}, tmp_path / "legacy.pt", _use_new_zipfile_serialization=False)
+    assert checkpoint.describe_non_checkpoint(tmp_path / "legacy.pt") is None

@@ -48,6 +48,41 @@ def save_atomic(path, payload: dict) -> Path:
     return path
 
 
+def describe_non_checkpoint(path: Path) -> str | None:
+    """What ``path`` is when it cannot be a ``torch.save`` file (a zip holding ``data.pkl``, or a
+    legacy pickle), e.g. "a JSON or other text file (starts with '{"a')"; None when it may be one."""
+    import zipfile
+
+    with open(path, "rb") as f:
+        head = f.read(64)
+    if not head:
+        return "an empty file"
+    if head.startswith(b"PK\x03\x04"):
+        try:
+            with zipfile.ZipFile(path) as z:
+                names = z.namelist()
+        except (zipfile.BadZipFile, OSError):
+            return "a damaged zip archive"
+        if any(n.endswith("data.pkl") for n in names):
+            return None
+        kind = "a NumPy .npz archive" if any(n.endswith(".npy") for n in names) else "a zip archive"
+        return f"{kind} ({len(names)} entries, e.g. {names[0]!r})" if names else f"{kind} (empty)"
+    if head[:1] == b"\x80":  # a pickle (torch.save's legacy format)
+        return None
+    if head.startswith(b"\x93NUMPY"):
+        return "a NumPy .npy array"
+    if head.startswith(b"\x89HDF"):
+        return "an HDF5 file"
+    if head.startswith(b"\x89PNG"):
+        return "a PNG image"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return f"binary data of {path.stat().st_size} bytes (starts with {head[:8].hex(' ')})"
+    kind = "a JSON or other text file" if text.lstrip()[:1] in ("{", "[") else "a text file"
+    return f"{kind} (starts with {text.strip()[:20]!r})"
+
+
 def load(path, map_location="cpu") -> dict:
     """Read a checkpoint written by ``save_atomic`` (a clear error for a missing or unreadable file).
 
@@ -56,6 +91,10 @@ def load(path, map_location="cpu") -> dict:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r}: no such file")
+    what = describe_non_checkpoint(path)
+    if what is not None:
+        raise CheckpointMismatch(f"checkpoint {str(path)!r} is {what}, not a checkpoint (mvtn-train writes "
+                                 "last.pt / best.pt with torch.save)")
     try:
         with torch.serialization.safe_globals(NUMPY_ARRAYS):  # checkpoints before 2026-12-01: numpy RNG keys
             payload = torch.load(path, map_location=map_location, weights_only=True)
