@@ -178,6 +178,16 @@ def check_writable(prog: str, argv: list[str], default: str = "outputs") -> None
         sys.exit(2)
 
 
+def os_error_text(exc: OSError) -> str:
+    """One line for an OSError: a full disk says so, naming the file being written."""
+    import errno
+
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = f" (writing {exc.filename})" if exc.filename else ""
+        return f"no space left on the device{where}: free some space, or set paths.output_dir to another disk"
+    return str(exc)
+
+
 def mark_failed(run_dir: Path, status: str, error: str) -> None:
     """``<run_dir>/status.json`` = ``{"status", "error"}``: a run dir left by a failed command says so
     (the sweep summary reads the same file)."""

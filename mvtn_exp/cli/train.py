@@ -24,7 +24,7 @@ from ..engine import run_dir as run_dir_state
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
 from ..schema import TrainConfig, register_configs
-from .common import check_overrides, check_writable, mark_failed
+from .common import check_overrides, check_writable, mark_failed, os_error_text
 
 register_configs()
 EXIT_CODES = {TrainingDiverged: 3}
@@ -137,10 +137,14 @@ def _app(cfg) -> None:
                 return
             sys.exit(2)
         kind = "training diverged" if isinstance(exc, TrainingDiverged) else "error"
-        print(f"mvtn-train: {kind}: {exc}", file=sys.stderr)
-        with open(run_dir / "train.log", "a") as f:  # the run's record keeps the reason too
-            f.write(f"mvtn-train: {kind}: {exc}\n")
-        mark_failed(run_dir, kind, str(exc))  # no run dir is left looking like an unfinished run
+        text = os_error_text(exc) if isinstance(exc, OSError) else str(exc)
+        print(f"mvtn-train: {kind}: {text}", file=sys.stderr)
+        try:
+            with open(run_dir / "train.log", "a") as f:  # the run's record keeps the reason too
+                f.write(f"mvtn-train: {kind}: {text}\n")
+        except OSError:
+            pass  # (a full disk: stderr is all there is)
+        mark_failed(run_dir, kind, text)  # no run dir is left looking like an unfinished run
         if hc.mode == RunMode.MULTIRUN:  # recorded for the sweep summary: go on with the next job
             return
         sys.exit(EXIT_CODES.get(type(exc), 1 if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError) else 2))

@@ -1,6 +1,7 @@
 """Checkpoints: atomic writes (temp file + ``os.replace``), loading, and the config compatibility check."""
 from __future__ import annotations
 
+import io
 import os
 import pickle
 import tempfile
@@ -34,16 +35,20 @@ def save_atomic(path, payload: dict) -> Path:
     """``torch.save`` into a temp file beside ``path`` then ``os.replace``: readers never see half a file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()  # serialised in memory first: a full disk then fails in write() with ENOSPC,
+    torch.save(payload, buffer)  # not in torch's zip writer as "unexpected pos"
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
+            f.write(buffer.getbuffer())
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename is None:  # name the file (a full disk says no more)
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
         raise
     return path
 
