@@ -80,3 +80,32 @@ def test_a_user_option_file_without_its_schema_is_one_line_naming_the_fix(tmp_pa
     err = capsys.readouterr().err.strip().splitlines()
     assert e.value.code == 2 and len(err) == 1
     assert "mvnet.pool" in err[0] and "/schema/mvnet/NAME@_here_" in err[0] and "viewgcn" in err[0], err
+
+
+@pytest.mark.parametrize("text, where, needle", [
+    ("# @package _global_\nviews: 2\nviewz: 3\n", "mine.yaml:3", "Key 'viewz' not in 'TrainConfig'"),
+    ("# @package _global_\nepochs: 2\nselector:\n  distance: far\n", "mine.yaml:4", "key 'selector.distance'"),
+    ("# @package _global_\nviews: [\n", "mine.yaml:3", "while parsing a flow node"),
+])
+def test_a_bad_user_file_is_named_with_its_line(tmp_path, monkeypatch, capsys, text, where, needle):
+    from mvtn_exp.cli.common import check_overrides
+
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "mine.yaml").write_text(text)
+    monkeypatch.setenv("MVTN_CONFIGS", str(tmp_path))
+    with pytest.raises(SystemExit) as e:
+        check_overrides("mvtn-train", "train", TrainConfig, ["+experiment=mine"], validate=TrainConfig.validate)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1, err
+    assert err[0].startswith(f"mvtn-train: config error in {tmp_path / 'experiment' / where}: ") and needle in err[0], err
+
+
+def test_a_user_file_named_like_the_main_config_is_refused(tmp_path, monkeypatch, capsys):
+    from mvtn_exp.cli.common import check_overrides
+
+    (tmp_path / "train.yaml").write_text("views: 3\n")
+    monkeypatch.setenv("MVTN_CONFIGS", str(tmp_path))
+    with pytest.raises(SystemExit) as e:
+        check_overrides("mvtn-train", "train", TrainConfig, [], validate=TrainConfig.validate)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and f"{tmp_path / 'train.yaml'}: a file named like mvtn-train's main" in err[0]

@@ -255,6 +255,7 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
     if "--help" in argv or "-h" in argv:
         print(project_help(prog, config_name, schema, config_module, overrides=argv))
         sys.exit(0)
+    _refuse_shadowed_main_config(prog, config_name)
     info = [a for a in argv if a in HYDRA_INFO_FLAGS or a.split("=")[0] in HYDRA_INFO_FLAGS]
     if info and any(a in MULTIRUN_FLAGS for a in argv):
         print(f"{prog}: error: {info[0]} prints one composed config and cannot be combined with -m/--multirun; "
@@ -295,14 +296,64 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
                 if validate is not None:
                     validate(obj)
     except Exception as exc:  # composition, type and validation errors
-        cause = exc  # prefer the innermost error that names the key
-        while cause.__cause__ is not None:
-            cause = cause.__cause__
-        if "full_key:" not in str(cause):
-            cause = exc
+        cause, link = exc, exc  # prefer the innermost error that names the key
+        while link is not None:
+            cause = link if "full_key:" in str(link) else cause
+            link = link.__cause__ or link.__context__
         key, msg = describe(cause, schema)
-        print(f"{prog}: config error in {_config_file(key, choices, config_name, conf_dir)}: {msg}", file=sys.stderr)
+        source = _source_file(exc, key, config_module)
+        if source is not None and _yaml_mark(exc) is not None:  # a file that is not YAML: its parser's words
+            msg = "; ".join(ln.strip() for ln in str(_yaml_mark(exc)).splitlines() if not ln.strip().startswith("in \""))
+        where = source or _config_file(key, choices, config_name, conf_dir)
+        print(f"{prog}: config error in {where}: {msg}", file=sys.stderr)
         sys.exit(2)
+
+
+def _refuse_shadowed_main_config(prog: str, config_name: str) -> None:
+    """A user's ``configs/<main config>.yaml`` (e.g. ``configs/train.yaml``) would replace the command's
+    whole config (Hydra searches ``configs/`` first): one line, exit 2."""
+    import os
+
+    shadow = Path(os.environ.get("MVTN_CONFIGS", "configs")) / f"{config_name}.yaml"
+    if shadow.is_file():
+        print(f"{prog}: config error in {shadow}: a file named like {prog}'s main config would replace all of it; "
+              f"rename it (a setup of your own: configs/experiment/NAME.yaml, used with +experiment=NAME)",
+              file=sys.stderr)
+        sys.exit(2)
+
+
+def _yaml_mark(exc):
+    """The YAML parser's error in ``exc``'s chain (it carries ``problem_mark``: file and line), or None."""
+    while exc is not None:
+        if getattr(exc, "problem_mark", None) is not None:
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _source_file(exc, key: str, config_module: str) -> Optional[str]:
+    """``path:line`` of the config file an error arose in, when Hydra names one (``In 'experiment/x'``)
+    or YAML could not parse it: a user's ``configs/`` file (``MVTN_CONFIGS``) before the packaged
+    one of that name, the line of ``key``'s last part in it when found."""
+    import os
+
+    yaml_error = _yaml_mark(exc)
+    if yaml_error is not None:
+        mark = yaml_error.problem_mark
+        return f"{mark.name}:{mark.line + 1}"
+    m = re.match(r"In '([\w./-]+)'", str(exc))
+    if not m:
+        return None
+    rel = f"{m.group(1)}.yaml"
+    user = Path(os.environ.get("MVTN_CONFIGS", "configs")) / rel
+    path, shown = (user, str(user)) if user.is_file() else (package_conf(config_module) / rel,
+                                                             f"{config_module.replace('.', '/')}/{rel}")
+    leaf = key.rsplit(".", 1)[-1] if key else ""
+    if leaf and path.is_file():
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            if re.match(rf"\s*{re.escape(leaf)}\s*:", line):
+                return f"{shown}:{n}"
+    return shown
 
 
 def compose_train_config(overrides: list[str], prog: str = "mvtn-train"):
