@@ -138,3 +138,81 @@ def test_slurm_launcher_config_carries_the_cluster_settings():
     for key in ("gpus_per_node", "cpus_per_task", "mem_gb", "timeout_min", "array_parallelism"):
         assert launcher[key] >= 1, key
     assert launcher.max_num_timeout >= 1  # requeued after a timeout or preemption
+
+
+def _cli_in(cwd, args, env=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=timeout, env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})})
+
+
+def _one_sweep_dir(cwd: Path) -> Path:
+    dirs = list((cwd / "outputs" / "train" / "multiruns").iterdir())
+    assert len(dirs) == 1, dirs  # every job in the announced sweep folder, none scattered
+    return dirs[0]
+
+
+@pytest.fixture(scope="module")
+def default_folder_sweeps(cache, tmp_path_factory):
+    """joblib and submitit_local sweeps with the default folders (no hydra.sweep.dir), from their
+    own working directories; each has a job that fails (an unwritable dataset root)."""
+    out = {}
+    for name in ("joblib", "submitit_local"):
+        cwd = tmp_path_factory.mktemp(name)
+        args = ["-m", f"hydra/launcher={name}", *_tiny(cache)[:-2], "logger=none", "seed=0",
+                f"dataset.root={cache},/proc/mvtn-unwritable"]
+        out[name] = (cwd, _cli_in(cwd, args + (["hydra.launcher.n_jobs=2"] if name == "joblib" else [])))
+    return out
+
+
+@pytest.mark.parametrize("name", ["joblib", "submitit_local"])
+def test_launcher_jobs_land_in_the_announced_sweep_dir_with_a_complete_summary(default_folder_sweeps, name):
+    cwd, r = default_folder_sweeps[name]
+    assert r.returncode == 1, r.stderr[-3000:]  # one job failed: the sweep says so
+    sweep = _one_sweep_dir(cwd)
+    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert len(jobs) == 2 and all("=" not in j and "," not in j for j in jobs), jobs
+    rows = (sweep / "summary.csv").read_text().splitlines()[1:]
+    assert len(rows) == 2 and sum(",ok," in row for row in rows) == 1 and sum(",error," in row for row in rows) == 1
+
+
+def test_a_requeued_submitit_job_resumes_in_its_own_dir(default_folder_sweeps):
+    """A requeue runs the job's pickled call again in a new process (new pid): it lands in the same
+    job dir (the cached sweep folder) and goes on from its last.pt."""
+    cwd, _ = default_folder_sweeps["submitit_local"]
+    sweep = _one_sweep_dir(cwd)
+    job = next(p for p in sweep.iterdir() if p.name.startswith("0_"))
+    (job / "metrics.json").unlink()  # as if preempted after its last epoch was saved
+    (job / "status.json").write_text(json.dumps({"status": "interrupted", "error": ""}))
+    pickled = sorted(sweep.glob(".submitit/*/*_submitted.pkl"))[0]
+    job_id = pickled.name.split("_")[0]
+    code = ("import sys\nfrom submitit.core.utils import DelayedSubmission\n"
+            "DelayedSubmission.load(sys.argv[1]).result()\n")
+    r = subprocess.run([sys.executable, "-c", code, str(pickled)], cwd=cwd, capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "SUBMITIT_EXECUTOR": "local", "SUBMITIT_LOCAL_JOB_ID": job_id})
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert _one_sweep_dir(cwd) == sweep
+    assert "requeued: going on from" in (job / "train.log").read_text() and (job / "metrics.json").is_file()
+    assert json.loads((job / "status.json").read_text())["status"] == "ok"
+
+
+def test_an_interrupted_sweep_resumes_its_unfinished_jobs_only(default_folder_sweeps, tmp_path):
+    import shutil
+
+    cwd, _ = default_folder_sweeps["joblib"]
+    sweep = tmp_path / "sweep"
+    shutil.copytree(_one_sweep_dir(cwd), sweep)
+    done = next(p for p in sweep.iterdir() if p.name.startswith("0_"))
+    stamp = (done / "metrics.json").stat().st_mtime_ns
+    for name in ("summary.csv", "summary.md"):
+        (sweep / name).unlink()  # an interrupted sweep wrote none
+    r = _cli_in(cwd, ["--resume-sweep", str(sweep)])
+    assert r.returncode == 1, r.stderr[-3000:]  # the failed job fails again (its root is still unwritable)
+    assert f"{done} finished before; kept" in r.stderr and (done / "metrics.json").stat().st_mtime_ns == stamp
+    rows = (sweep / "summary.csv").read_text().splitlines()[1:]
+    assert len(rows) == 2 and sum(",ok," in row for row in rows) == 1
+    last = done / "last.pt"  # a sweep job's resume command works as printed (no quoting needed)
+    r = _cli_in(tmp_path, [f"ckpt_path={last}", "epochs=2"])
+    assert r.returncode == 0 and "resumed from" in (done / "train.log").read_text(), r.stderr[-3000:]
+    for bad in ([], [str(sweep), "epochs=3"], [str(tmp_path / "nope")]):
+        r = _cli_in(tmp_path, ["--resume-sweep", *bad])
+        assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--resume-sweep" in r.stderr, r.stderr

@@ -328,9 +328,9 @@ def test_cli_multirun_keeps_jobs_apart_and_fails_loudly(tmp_path):
               f"hydra.sweep.dir={sweep}"], ROOT)
     assert r.returncode == 1, r.stderr[-2000:]
     jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
-    assert jobs == ["0_+experiment=modelnet_spherical", "1_+experiment=modelnet_spherical"], jobs
+    assert jobs == ["0_+experiment-modelnet_spherical", "1_+experiment-modelnet_spherical"], jobs
     last = r.stderr.strip().splitlines()[-1]
-    assert last.startswith("mvtn-train: 2 of 2 sweep jobs failed: 0_+experiment") and "not found at" in last
+    assert last.startswith("mvtn-train: 2 of 2 sweep jobs failed: 0_+experiment-") and "not found at" in last
     assert (sweep / "summary.csv").is_file()
 
 

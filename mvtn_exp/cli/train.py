@@ -80,12 +80,13 @@ def launcher_threads(launcher, cores: int) -> int | None:
     return None
 
 
-def requeued_checkpoint(run_dir: Path) -> Path | None:
-    """A cluster job started again in its own run dir (submitit requeues a preempted or timed-out
-    job with the same command): its ``last.pt``, to go on from; None for a first start or a run
-    that finished."""
+def requeued_checkpoint(run_dir: Path, sweep_job: bool = False) -> Path | None:
+    """A job started again in its own run dir: a cluster job (submitit requeues a preempted or
+    timed-out job with the same command) or a sweep job run again (``--resume-sweep``, or the same
+    sweep into the same ``hydra.sweep.dir``): its ``last.pt``, to go on from; None for a first
+    start or a run that finished."""
     last = run_dir / "last.pt"
-    if os.environ.get("SUBMITIT_EXECUTOR") and last.is_file() and not (run_dir / "metrics.json").is_file():
+    if (sweep_job or os.environ.get("SUBMITIT_EXECUTOR")) and last.is_file() and not (run_dir / "metrics.json").is_file():
         return last
     return None
 
@@ -105,7 +106,13 @@ def _app(cfg) -> None:
             return
         sys.exit(2)
     try:
-        requeued = None if cfg.ckpt_path else requeued_checkpoint(run_dir)
+        again = hc.mode == RunMode.MULTIRUN or bool(os.environ.get("SUBMITIT_EXECUTOR"))
+        if again and cfg.overwrite:  # a sweep run again with overwrite=true: its jobs start over
+            run_dir_state.check_new_run(run_dir, overwrite=True)
+        elif again and not cfg.ckpt_path and (run_dir / "metrics.json").is_file():
+            print(f"mvtn-train: {run_dir} finished before; kept (overwrite=true trains it again)", file=sys.stderr)
+            return
+        requeued = None if cfg.ckpt_path or cfg.overwrite else requeued_checkpoint(run_dir, hc.mode == RunMode.MULTIRUN)
         if requeued is not None:
             cfg.ckpt_path = str(requeued)
             with open(run_dir / "train.log", "a") as f:
@@ -159,6 +166,8 @@ def resume_in_place(argv: list[str]) -> list[str]:
     ckpt = next((a.split("=", 1)[1] for a in argv if a.startswith("ckpt_path=")), None)
     if not ckpt or ckpt == "null" or any(a in ("-m", "--multirun") for a in argv):
         return argv
+    if len(ckpt) > 1 and ckpt[0] == ckpt[-1] and ckpt[0] in "'\"":  # Hydra's quoting: ckpt_path='a=1,b/last.pt'
+        ckpt = ckpt[1:-1]
     if not Path(ckpt).is_file():
         print(f"mvtn-train: error: ckpt_path={ckpt}: no such checkpoint file", file=sys.stderr)
         sys.exit(2)
@@ -244,9 +253,33 @@ def claim_run_dir(argv: list[str]) -> None:
         sys.exit(2)
 
 
+def resume_sweep(argv: list[str]) -> list[str]:
+    """``mvtn-train --resume-sweep DIR``: the command line of the sweep in DIR again (its
+    ``multirun.yaml``: launcher and swept overrides), into DIR itself; each job then keeps a
+    finished result, goes on from its ``last.pt``, or starts (``_app``), and the summary is
+    rewritten whole."""
+    import yaml
+
+    if len(argv) != 1 or argv[0].startswith("-") or "=" in argv[0]:
+        print("mvtn-train: error: --resume-sweep takes one sweep folder and nothing else: mvtn-train --resume-sweep DIR "
+              "(other settings would give the jobs other folders)", file=sys.stderr)
+        sys.exit(2)
+    sweep = Path(argv[0])
+    record = sweep / "multirun.yaml"
+    if not record.is_file():
+        print(f"mvtn-train: error: --resume-sweep {sweep}: no multirun.yaml there (not a sweep folder of mvtn-train -m)",
+              file=sys.stderr)
+        sys.exit(2)
+    overrides = (yaml.safe_load(record.read_text()).get("hydra") or {}).get("overrides") or {}
+    hydra_args = [o for o in overrides.get("hydra") or [] if not o.startswith(("hydra.mode=", "hydra.sweep.dir="))]
+    return ["-m", *hydra_args, *(overrides.get("task") or []), f"hydra.sweep.dir={sweep}"]
+
+
 def main() -> None:
     if sys.argv[1:2] == ["--summary"]:
         sys.exit(summary(sys.argv[2:]))
+    if sys.argv[1:2] == ["--resume-sweep"]:
+        sys.argv[1:] = resume_sweep(sys.argv[2:])
     check_overrides("mvtn-train", "train", TrainConfig, sys.argv[1:], validate=TrainConfig.validate)
     sys.argv[1:] = resume_in_place(sys.argv[1:])
     check_writable("mvtn-train", sys.argv[1:])

@@ -78,6 +78,7 @@ def _read_run(path: Path) -> Run:
             if status_file.is_file():
                 st = json.loads(status_file.read_text())
                 status, error = str(st.get("status", "failed")), str(st.get("error", ""))
+                status = "incomplete" if status == "ok" else status  # ok, but its metrics.json is gone
             hydra_cfg = path / ".hydra" / "config.yaml"
             if hydra_cfg.is_file():
                 config = yaml.safe_load(hydra_cfg.read_text())

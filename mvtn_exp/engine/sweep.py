@@ -39,6 +39,8 @@ def collect(sweep_dir) -> list[dict]:
             row.update(status="ok", **{k: m.get(k) for k in COLUMNS})
         elif (job / STATUS_FILE).is_file():
             row.update(json.loads((job / STATUS_FILE).read_text()))
+            if row.get("status") == "ok":  # ok once, but its metrics.json is gone (say, resumed and cut short)
+                row["status"] = "incomplete"
         else:
             row["status"] = "incomplete"
         rows.append(row)
