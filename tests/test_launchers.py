@@ -111,6 +111,10 @@ def test_summary_on_demand_lists_unfinished_jobs_and_refuses_a_non_sweep(sweeps,
     assert r.returncode == 1 and (sweep / "summary.csv").is_file()
     assert r.stderr.strip().splitlines()[-1].startswith("mvtn-train: 1 of 2 sweep jobs did not finish: 1_")
     assert ",incomplete," in (sweep / "summary.csv").read_text()
+    shutil.rmtree(job)  # a job that never started (an interrupted sweep): counted from multirun.yaml
+    r = _cli(["--summary", str(sweep)])
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 1 and last.startswith("mvtn-train: 1 of 2 sweep jobs did not finish: 1 job(s): never started")
     r = _cli(["--summary", str(tmp_path / "nope")])
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "no such folder" in r.stderr, r.stderr
     from mvtn_exp.cli.train import summary

@@ -181,7 +181,7 @@ def summary(argv: list[str]) -> int:
     """``mvtn-train --summary DIR``: (re)write a sweep folder's summary, e.g. after jobs ran on a
     cluster and the submitting process was gone when they finished. Exit 0, 1 when a job failed or
     did not finish, 2 for a folder that is not a sweep."""
-    from ..engine.sweep import collect, failed_jobs, write_summary
+    from ..engine.sweep import collect, expected_jobs, failed_jobs, never_started, write_summary
 
     if len(argv) != 1:
         print("mvtn-train: error: --summary takes one sweep folder: mvtn-train --summary DIR", file=sys.stderr)
@@ -197,9 +197,11 @@ def summary(argv: list[str]) -> int:
     _, md = write_summary(sweep)
     print(md.read_text())
     print(md)
-    failed = failed_jobs(sweep, rows)
+    failed = failed_jobs(sweep, rows) + never_started(sweep, rows)
     if failed:
-        print(f"mvtn-train: {len(failed)} of {len(rows)} sweep jobs did not finish: " + "; ".join(failed), file=sys.stderr)
+        total = max(len(rows), expected_jobs(sweep) or 0)
+        unfinished = total - sum(r.get("status") == "ok" for r in rows)
+        print(f"mvtn-train: {unfinished} of {total} sweep jobs did not finish: " + "; ".join(failed), file=sys.stderr)
         return 1
     return 0
 

@@ -123,6 +123,30 @@ def failed_jobs(sweep_dir, rows: list[dict] | None = None) -> list[str]:
             for r in (collect(sweep_dir) if rows is None else rows) if r.get("status") != "ok"]
 
 
+def expected_jobs(sweep_dir) -> int | None:
+    """How many jobs the sweep in ``sweep_dir`` launches (the product of its swept values, from its
+    ``multirun.yaml``); None without that record."""
+    import yaml
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    record = Path(sweep_dir) / "multirun.yaml"
+    if not record.is_file():
+        return None
+    task = ((yaml.safe_load(record.read_text()) or {}).get("hydra") or {}).get("overrides", {}).get("task") or []
+    n = 1
+    for o in OverridesParser.create().parse_overrides([str(t) for t in task]):
+        if o.is_sweep_override():
+            n *= len(list(o.sweep_string_iterator()))
+    return n
+
+
+def never_started(sweep_dir, rows: list[dict]) -> list[str]:
+    """``"<k> job(s): never started"`` when the sweep's record promises more jobs than have folders."""
+    n = expected_jobs(sweep_dir)
+    missing = (n or 0) - len(rows)
+    return [f"{missing} job(s): never started (mvtn-train --resume-sweep {sweep_dir})"] if missing > 0 else []
+
+
 class SweepSummary(Callback):
     """Hydra callback: write the sweep summary when a multirun ends; exit 1 naming the failed jobs
     (after the summary is written) when any job failed."""
