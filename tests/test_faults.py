@@ -37,3 +37,40 @@ def test_a_full_disk_is_one_line_with_the_run_records_written(small_disk, tmp_pa
     assert json.loads((run / "status.json").read_text())["status"] == "error"
     assert "no space left" in (run / "train.log").read_text()
     assert not list(run.glob(".*.tmp"))  # the half-written checkpoint is gone
+
+
+def _train(args, cwd=ROOT):
+    return subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.mark.parametrize("delay", [0.3])
+def test_kill_9_at_some_step_then_resume_equals_the_uninterrupted_run(tmp_path, delay):
+    """SIGKILL (no handler runs) at some step after the first checkpoint: the folder reads as
+    incomplete, and resuming from its last.pt ends exactly where the uninterrupted run does."""
+    import signal
+    import time
+
+    import torch
+
+    args = [*TINY, "epochs=3", f"dataset.root={tmp_path / 'cache'}"]
+    full = tmp_path / "full"
+    assert _train([*args, f"hydra.run.dir={full}"]).returncode == 0
+    run = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "mvtn_exp.cli.train", *args, f"hydra.run.dir={run}"], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 240
+    while not (run / "last.pt").is_file() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    if (run / "metrics.json").is_file():
+        pytest.skip("the run finished before the kill landed")
+    assert not (run / "status.json").exists()  # no outcome: incomplete (last.pt, no metrics.json)
+    assert torch.load(run / "last.pt", weights_only=True)["epoch"] >= 1  # whole, never half a file
+    r = _train([f"ckpt_path={run / 'last.pt'}"], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    a, b = (json.loads((d / "metrics.json").read_text()) for d in (full, run))
+    assert a["test_acc"] == b["test_acc"] and [h["val_acc"] for h in a["history"]] == [h["val_acc"] for h in b["history"]]
+    assert [h["train_loss"] for h in a["history"]] == [h["train_loss"] for h in b["history"]]
