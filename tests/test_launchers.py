@@ -220,3 +220,15 @@ def test_an_interrupted_sweep_resumes_its_unfinished_jobs_only(default_folder_sw
     for bad in ([], [str(sweep), "epochs=3"], [str(tmp_path / "nope")]):
         r = _cli_in(tmp_path, ["--resume-sweep", *bad])
         assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--resume-sweep" in r.stderr, r.stderr
+
+
+def test_joblib_jobs_spread_over_the_visible_gpus():
+    from mvtn_exp.cli.train import launcher_device
+
+    joblib = OmegaConf.create({"_target_": JOBLIB, "n_jobs": 4})
+    assert [launcher_device(joblib, "cuda", n, gpus=2) for n in range(4)] == ["cuda:0", "cuda:1", "cuda:0", "cuda:1"]
+    assert launcher_device(joblib, "cuda", 3, gpus=1) == "cuda"  # one GPU: nothing to spread
+    assert launcher_device(joblib, "cuda:1", 0, gpus=2) == "cuda:1"  # an explicit GPU is kept
+    assert launcher_device(joblib, "cpu", 1, gpus=2) == "cpu"
+    assert launcher_device(OmegaConf.create({"_target_": SLURM}), "cuda", 1, gpus=2) == "cuda"  # a job per node
+    assert launcher_device(joblib, "cuda", None, gpus=2) == "cuda"  # not a sweep job

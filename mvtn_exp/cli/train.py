@@ -80,6 +80,20 @@ def launcher_threads(launcher, cores: int) -> int | None:
     return None
 
 
+def launcher_device(launcher, device: str, job_num: int | None, gpus: int | None = None) -> str:
+    """The device of one job of a joblib sweep whose jobs share this machine: ``device=cuda`` (no
+    index) goes to GPU ``job_num mod (visible GPUs)``, so the jobs spread over the GPUs instead of
+    all landing on ``cuda:0``; anything else, or another launcher, is left as it is."""
+    target = str(OmegaConf.select(launcher, "_target_", default="") or "")
+    if device != "cuda" or job_num is None or not target.endswith("JoblibLauncher"):
+        return device
+    if gpus is None:
+        import torch
+
+        gpus = torch.cuda.device_count()
+    return f"cuda:{job_num % gpus}" if gpus > 1 else device
+
+
 def requeued_checkpoint(run_dir: Path, sweep_job: bool = False) -> Path | None:
     """A job started again in its own run dir: a cluster job (submitit requeues a preempted or
     timed-out job with the same command) or a sweep job run again (``--resume-sweep``, or the same
@@ -123,6 +137,7 @@ def _app(cfg) -> None:
             tcfg = OmegaConf.to_object(cfg)
         if tcfg.threads is None:  # parallel local sweep: split the cores between the jobs
             tcfg.threads = launcher_threads(hc.launcher, usable_cores())
+        tcfg.device = launcher_device(hc.launcher, tcfg.device, hc.job.num if hc.mode == RunMode.MULTIRUN else None)
         train(tcfg, run_dir)
     except Interrupted as exc:
         last = run_dir / "last.pt"
