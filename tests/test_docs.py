@@ -8,7 +8,7 @@ How a command is checked, without running it (in-process, so the whole file take
   before anything else (unknown keys and group options, wrong types, every value of every swept key,
   ``+key`` outside the schema, launchers), with ``engine.trainer.as_config`` as its validation, so
   a bad value is caught too, not only a bad key. ``--cfg job`` is dropped and the rest composed;
-  ``--help`` / ``--version`` must exit 0; ``--summary DIR`` takes one folder.
+  ``--help`` / ``--version`` must exit 0; ``--summary DIR`` / ``--resume-sweep DIR`` take one folder.
 - ``mvtn-prepare`` composes ``conf/prepare.yaml`` the same way; ``mvtn-eval`` ``conf/evaluate/eval.yaml``
   (validated by ``EvalConfig.validate``); ``mvtn-render`` ``conf/render.yaml`` (layout and renderer
   settings validated as ``render_file`` does); ``mvtn-bench`` ``conf/bench.yaml`` (its threads check);
@@ -186,8 +186,8 @@ def check_train(argv: list[str], capsys, prog: str = "mvtn-train", config_name: 
     from mvtn_exp.schema import TrainConfig, register_configs
 
     register_configs()
-    if argv[:1] == ["--summary"]:
-        return None if len(argv) == 2 else "--summary takes one sweep folder"
+    if argv[:1] in (["--summary"], ["--resume-sweep"]):
+        return None if len(argv) == 2 else f"{argv[0]} takes one sweep folder"
     kept, skip = [], False
     for a in argv:  # --cfg job etc. only print the config: check the config they would print
         if skip:

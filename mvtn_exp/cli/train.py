@@ -105,6 +105,26 @@ def requeued_checkpoint(run_dir: Path, sweep_job: bool = False) -> Path | None:
     return None
 
 
+def keep_finished_job(cfg, run_dir: Path, multirun: bool) -> bool:
+    """A sweep or cluster job started again in its own run dir: True when it finished before (its
+    result is kept, nothing to do); with ``last.pt`` and no result it goes on from there
+    (``cfg.ckpt_path`` set); ``overwrite=true`` starts it over instead."""
+    if cfg.ckpt_path or not (multirun or os.environ.get("SUBMITIT_EXECUTOR")):
+        return False
+    if cfg.overwrite:
+        run_dir_state.check_new_run(run_dir, overwrite=True)
+        return False
+    if (run_dir / "metrics.json").is_file():
+        print(f"mvtn-train: {run_dir} finished before; kept (overwrite=true trains it again)", file=sys.stderr)
+        return True
+    requeued = requeued_checkpoint(run_dir, multirun)
+    if requeued is not None:
+        cfg.ckpt_path = str(requeued)
+        with open(run_dir / "train.log", "a") as f:
+            f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] requeued: going on from {requeued}\n")
+    return False
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def _app(cfg) -> None:
     hc = HydraConfig.get()
@@ -120,17 +140,8 @@ def _app(cfg) -> None:
             return
         sys.exit(2)
     try:
-        again = hc.mode == RunMode.MULTIRUN or bool(os.environ.get("SUBMITIT_EXECUTOR"))
-        if again and cfg.overwrite:  # a sweep run again with overwrite=true: its jobs start over
-            run_dir_state.check_new_run(run_dir, overwrite=True)
-        elif again and not cfg.ckpt_path and (run_dir / "metrics.json").is_file():
-            print(f"mvtn-train: {run_dir} finished before; kept (overwrite=true trains it again)", file=sys.stderr)
+        if keep_finished_job(cfg, run_dir, hc.mode == RunMode.MULTIRUN):
             return
-        requeued = None if cfg.ckpt_path or cfg.overwrite else requeued_checkpoint(run_dir, hc.mode == RunMode.MULTIRUN)
-        if requeued is not None:
-            cfg.ckpt_path = str(requeued)
-            with open(run_dir / "train.log", "a") as f:
-                f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] requeued: going on from {requeued}\n")
         if cfg.ckpt_path:  # (a finished run's metrics.json is kept aside once the resume is accepted)
             tcfg = resume_config(cfg, list(hc.overrides.task))
         else:
