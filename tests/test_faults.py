@@ -44,6 +44,7 @@ def _train(args, cwd=ROOT):
                           timeout=300)
 
 
+@pytest.mark.slow  # three tiny trainings (~40 s): make test-all
 @pytest.mark.parametrize("delay", [0.3])
 def test_kill_9_at_some_step_then_resume_equals_the_uninterrupted_run(tmp_path, delay):
     """SIGKILL (no handler runs) at some step after the first checkpoint: the folder reads as

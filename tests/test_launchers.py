@@ -158,19 +158,24 @@ def _one_sweep_dir(cwd: Path) -> Path:
 @pytest.fixture(scope="module")
 def default_folder_sweeps(cache, tmp_path_factory):
     """joblib and submitit_local sweeps with the default folders (no hydra.sweep.dir), from their
-    own working directories; each has a job that fails (an unwritable dataset root)."""
+    own working directories, each run when a test first asks for it; each has a job that fails
+    (an unwritable dataset root)."""
     out = {}
-    for name in ("joblib", "submitit_local"):
-        cwd = tmp_path_factory.mktemp(name)
-        args = ["-m", f"hydra/launcher={name}", *_tiny(cache)[:-2], "logger=none", "seed=0",
-                f"dataset.root={cache},/proc/mvtn-unwritable"]
-        out[name] = (cwd, _cli_in(cwd, args + (["hydra.launcher.n_jobs=2"] if name == "joblib" else [])))
-    return out
+
+    def get(name):
+        if name not in out:
+            cwd = tmp_path_factory.mktemp(name)
+            args = ["-m", f"hydra/launcher={name}", *_tiny(cache)[:-2], "logger=none", "seed=0",
+                    f"dataset.root={cache},/proc/mvtn-unwritable"]
+            out[name] = (cwd, _cli_in(cwd, args + (["hydra.launcher.n_jobs=2"] if name == "joblib" else [])))
+        return out[name]
+
+    return get
 
 
-@pytest.mark.parametrize("name", ["joblib", "submitit_local"])
+@pytest.mark.parametrize("name", ["joblib", pytest.param("submitit_local", marks=pytest.mark.slow)])
 def test_launcher_jobs_land_in_the_announced_sweep_dir_with_a_complete_summary(default_folder_sweeps, name):
-    cwd, r = default_folder_sweeps[name]
+    cwd, r = default_folder_sweeps(name)
     assert r.returncode == 1, r.stderr[-3000:]  # one job failed: the sweep says so
     sweep = _one_sweep_dir(cwd)
     jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
@@ -179,10 +184,11 @@ def test_launcher_jobs_land_in_the_announced_sweep_dir_with_a_complete_summary(d
     assert len(rows) == 2 and sum(",ok," in row for row in rows) == 1 and sum(",error," in row for row in rows) == 1
 
 
+@pytest.mark.slow  # a submitit sweep and its requeue (~40 s): make test-all
 def test_a_requeued_submitit_job_resumes_in_its_own_dir(default_folder_sweeps):
     """A requeue runs the job's pickled call again in a new process (new pid): it lands in the same
     job dir (the cached sweep folder) and goes on from its last.pt."""
-    cwd, _ = default_folder_sweeps["submitit_local"]
+    cwd, _ = default_folder_sweeps("submitit_local")
     sweep = _one_sweep_dir(cwd)
     job = next(p for p in sweep.iterdir() if p.name.startswith("0_"))
     (job / "metrics.json").unlink()  # as if preempted after its last epoch was saved
@@ -202,7 +208,7 @@ def test_a_requeued_submitit_job_resumes_in_its_own_dir(default_folder_sweeps):
 def test_an_interrupted_sweep_resumes_its_unfinished_jobs_only(default_folder_sweeps, tmp_path):
     import shutil
 
-    cwd, _ = default_folder_sweeps["joblib"]
+    cwd, _ = default_folder_sweeps("joblib")
     sweep = tmp_path / "sweep"
     shutil.copytree(_one_sweep_dir(cwd), sweep)
     done = next(p for p in sweep.iterdir() if p.name.startswith("0_"))
