@@ -253,8 +253,8 @@ def test_presets_are_the_three_documented():
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
-@pytest.mark.parametrize("cli, argv", [("train", []), ("eval", ["ckpt=x.pt"]), ("render", ["input=builtin:sphere"]),
-                                       ("bench", ["quick=true"])])
+@pytest.mark.parametrize("cli, argv", [("eval", ["ckpt=x.pt"]), ("render", ["input=builtin:sphere"]),
+                                       ("bench", ["quick=true"])])  # mvtn-train: test_check_overrides_refuses
 def test_every_cli_refuses_cuda_on_a_cpu_build_in_one_line(cli, argv, tmp_path):
     import subprocess
     import sys
