@@ -478,3 +478,15 @@ def test_worker_processes_change_nothing(cache, full_run, tmp_path):
     """dataset.num_workers=2 (workers kept between epochs and validation passes): the same run."""
     _, full = full_run
     _assert_same_run(train(tiny(cache, **{"dataset.num_workers": 2}), tmp_path / "w"), full)
+
+
+def test_resume_with_weights_of_another_shape_is_one_line(cache, full_run, tmp_path):
+    run, _ = full_run
+    state = torch.load(run / "last.pt", weights_only=True)
+    name = next(k for k, v in state["model"].items() if v.dim() >= 2)
+    state["model"][name] = torch.zeros(3, 3)  # same config, a weight of another shape
+    torch.save(state, tmp_path / "bent.pt")
+    with pytest.raises(CheckpointMismatch, match="weights do not fit the model its config builds") as e:
+        train(tiny(cache, ckpt_path=str(tmp_path / "bent.pt")), tmp_path / "resumed")
+    assert "\n" not in str(e.value) and name in str(e.value)
+    assert not (tmp_path / "resumed" / "provenance.json").exists()  # refused before anything was written
