@@ -205,6 +205,7 @@ def test_a_requeued_submitit_job_resumes_in_its_own_dir(default_folder_sweeps):
     assert json.loads((job / "status.json").read_text())["status"] == "ok"
 
 
+@pytest.mark.slow  # a sweep run again and a resume (~30 s): make test-all
 def test_an_interrupted_sweep_resumes_its_unfinished_jobs_only(default_folder_sweeps, tmp_path):
     import shutil
 

@@ -46,6 +46,7 @@ def test_a_finished_run_says_ok_and_a_refused_resume_changes_nothing(finished):
     assert _snapshot(run) == before  # metrics.json, status.json, provenance, .hydra: as they were
 
 
+@pytest.mark.slow  # a second training (make test-all); the refusal itself: test_lock_is_per_process_...
 def test_a_new_run_into_a_run_dir_is_refused_unless_overwrite(finished, tmp_path):
     base, run = finished
     before = _snapshot(run)
