@@ -390,8 +390,8 @@ def epoch_line(epoch: int, cfg: TrainConfig, tr: dict, val: dict, val_ema, impro
 
 
 def prepare_run(cfg: TrainConfig, run_dir: Path, world: distributed.World):
-    """The device, the run's provenance record (written by ``start_record`` once the run is
-    accepted), and a warning for a learned G on a renderer without a useful camera gradient."""
+    """The device, the run's provenance record (a resumed run's is written by ``start_record``
+    once the resume is accepted), and a warning for a learned G on a renderer without a useful camera gradient."""
     if world.enabled:
         check_world(cfg, world)
     device = torch.device(distributed.init(world, cfg.device))
@@ -400,6 +400,8 @@ def prepare_run(cfg: TrainConfig, run_dir: Path, world: distributed.World):
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     origin = {**provenance(str(device)), "world_size": world.size}
+    if world.main and not cfg.ckpt_path:  # a new run's folder says what made it from the start
+        (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
     problem = (cfg.renderer.camera_gradient_problem()
                if cfg.selector.uses_camera_gradient() and cfg.dataset.shape == "mesh" else None)
     if problem:
