@@ -301,20 +301,26 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
             cause = link if "full_key:" in str(link) else cause
             link = link.__cause__ or link.__context__
         key, msg = describe(cause, schema)
-        source = _source_file(exc, key, config_module)
-        if source is not None and _yaml_mark(exc) is not None:  # a file that is not YAML: its parser's words
-            msg = "; ".join(ln.strip() for ln in str(_yaml_mark(exc)).splitlines() if not ln.strip().startswith("in \""))
+        source, yaml_error = _source_file(exc, key, config_module), _yaml_mark(exc)
+        if yaml_error is not None:  # a file that is not YAML: its parser's words
+            msg = "; ".join(ln.strip() for ln in str(yaml_error).splitlines() if not ln.strip().startswith("in \""))
         where = source or _config_file(key, choices, config_name, conf_dir)
         print(f"{prog}: config error in {where}: {msg}", file=sys.stderr)
         sys.exit(2)
 
 
+def user_configs() -> Path:
+    """The user's config folder the commands search first (``MVTN_CONFIGS``, else ``./configs``;
+    ``hydra_plugins/mvtn_exp_project_configs``)."""
+    import os
+
+    return Path(os.environ.get("MVTN_CONFIGS", "configs"))
+
+
 def _refuse_shadowed_main_config(prog: str, config_name: str) -> None:
     """A user's ``configs/<main config>.yaml`` (e.g. ``configs/train.yaml``) would replace the command's
     whole config (Hydra searches ``configs/`` first): one line, exit 2."""
-    import os
-
-    shadow = Path(os.environ.get("MVTN_CONFIGS", "configs")) / f"{config_name}.yaml"
+    shadow = user_configs() / f"{config_name}.yaml"
     if shadow.is_file():
         print(f"{prog}: config error in {shadow}: a file named like {prog}'s main config would replace all of it; "
               f"rename it (a setup of your own: configs/experiment/NAME.yaml, used with +experiment=NAME)",
@@ -335,8 +341,6 @@ def _source_file(exc, key: str, config_module: str) -> Optional[str]:
     """``path:line`` of the config file an error arose in, when Hydra names one (``In 'experiment/x'``)
     or YAML could not parse it: a user's ``configs/`` file (``MVTN_CONFIGS``) before the packaged
     one of that name, the line of ``key``'s last part in it when found."""
-    import os
-
     yaml_error = _yaml_mark(exc)
     if yaml_error is not None:
         mark = yaml_error.problem_mark
@@ -345,7 +349,7 @@ def _source_file(exc, key: str, config_module: str) -> Optional[str]:
     if not m:
         return None
     rel = f"{m.group(1)}.yaml"
-    user = Path(os.environ.get("MVTN_CONFIGS", "configs")) / rel
+    user = user_configs() / rel
     path, shown = (user, str(user)) if user.is_file() else (package_conf(config_module) / rel,
                                                              f"{config_module.replace('.', '/')}/{rel}")
     leaf = key.rsplit(".", 1)[-1] if key else ""

@@ -9,7 +9,6 @@ import logging
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 
 import hydra
 import numpy as np
@@ -127,13 +126,13 @@ def render_file(cfg: RenderAppConfig, out_dir: Path) -> list[Path]:
             out = renderer(shape, azim[:, i:i + 1], elev[:, i:i + 1], dist[:, i:i + 1])
             images.append(out.images)
             alpha.append(out.alpha)
-    out = SimpleNamespace(images=torch.cat(images, 1), alpha=torch.cat(alpha, 1))
-    if float(out.alpha.max()) == 0.0:
+    images = torch.cat(images, 1)  # [1, M, 3, H, W]
+    if float(torch.cat(alpha, 1).max()) == 0.0:
         log.warning("%s: every view is empty (shape outside all views?)", cfg.input)
     out_dir.mkdir(parents=True, exist_ok=True)
-    png = write_png(out_dir / "views.png", view_grid(out.images[0]))
+    png = write_png(out_dir / "views.png", view_grid(images[0]))
     npy = out_dir / "images.npy"
-    np.save(npy, out.images[0].cpu().numpy())
+    np.save(npy, images[0].cpu().numpy())
     angles = out_dir / "views.csv"
     rows = ["view,azim_deg,elev_deg,dist"] + [f"{i},{a:.4f},{e:.4f},{d:.4f}" for i, (a, e, d) in
                                                enumerate(zip(azim[0].tolist(), elev[0].tolist(), dist[0].tolist()))]
