@@ -21,11 +21,15 @@ install: $(STAMP)  ## create .venv: torch==2.13.0 first (CPU build), then the pa
 run: install  ## train the default MVTN on the embedded synthetic dataset (about 2 minutes; outputs/train/...)
 	$(BIN)/mvtn-train
 
-test: install  ## run the fast test suite (slow tests: make test-all)
-	$(BIN)/python -m pytest -q
+# One pytest worker per core (-n auto), each test file on one worker (--dist loadfile: module fixtures
+# built once); tests/conftest.py gives each worker one torch thread so the workers do not fight.
+XDIST := -n auto --dist loadfile
+
+test: install  ## run the fast test suite on every core (slow tests: make test-all)
+	$(BIN)/python -m pytest -q $(XDIST)
 
 test-all: install  ## run every test, slow ones included
-	$(BIN)/python -m pytest -q -m ''
+	$(BIN)/python -m pytest -q -m '' $(XDIST)
 
 bench: install  ## renderer speed/memory benchmark; prints a Markdown table, writes outputs/bench/
 	$(BIN)/mvtn-bench

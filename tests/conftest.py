@@ -1,8 +1,16 @@
+import os
 import sys
 from pathlib import Path
 
-import pytest
-import torch
+if os.environ.get("PYTEST_XDIST_WORKER"):  # `make test` runs one worker per core: one thread each,
+    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # for this process and the CLIs it starts
+        os.environ[_var] = "1"
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)
 
 sys.path.insert(0, str(Path(__file__).parent))
 
