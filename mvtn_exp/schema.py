@@ -213,7 +213,9 @@ class TrainConfig:
     launcher the cores divided by the jobs that run at once); ``precision``: fp32, or autocast of
     the multi-view network C in bf16 or fp16 (CUDA only; G and the renderer stay float32:
     ``models/precision.py``); ``overwrite``: a new run may replace the run in its ``hydra.run.dir``
-    (one holding a ``last.pt``; else refused: ``engine/run_dir.py``).
+    (one holding a ``last.pt``; else refused: ``engine/run_dir.py``); ``sync_bn``: with several
+    processes (torchrun), BatchNorm statistics over the whole global batch (``models/sync_bn.py``;
+    false: each process over its own share, as plain DDP); no effect in one process.
     """
 
     views: int = 4
@@ -226,6 +228,7 @@ class TrainConfig:
     threads: Optional[int] = None
     precision: str = "fp32"
     overwrite: bool = False
+    sync_bn: bool = True
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # renderer.image_size follows the top-level image_size (an interpolation, resolved at compose time);
     # training defaults to soft smooth rendering (conf/renderer/soft.yaml: camera gradients for G)

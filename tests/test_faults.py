@@ -75,3 +75,49 @@ def test_kill_9_at_some_step_then_resume_equals_the_uninterrupted_run(tmp_path, 
     a, b = (json.loads((d / "metrics.json").read_text()) for d in (full, run))
     assert a["test_acc"] == b["test_acc"] and [h["val_acc"] for h in a["history"]] == [h["val_acc"] for h in b["history"]]
     assert [h["train_loss"] for h in a["history"]] == [h["train_loss"] for h in b["history"]]
+
+
+SIGTERM_IN_SECOND_WRITE = """
+import os, signal, time
+import mvtn_exp.engine.checkpoint as ck
+_replace, _calls = os.replace, [0]
+
+def replace(src, dst):  # SIGTERM while a checkpoint is half way: written to its temp file, not yet in place
+    if str(dst).endswith("last.pt"):
+        _calls[0] += 1
+        if _calls[0] == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+    return _replace(src, dst)
+ck.os = type("os", (), {**{k: getattr(os, k) for k in dir(os) if not k.startswith("__")}, "replace": staticmethod(replace)})
+"""
+
+
+def test_sigterm_while_a_checkpoint_is_written_keeps_the_previous_one_and_resume_is_exact(tmp_path):
+    """SIGTERM lands while epoch 2's last.pt is being written (its temp file full, not yet moved):
+    one line, exit 143, no temp file left, last.pt is epoch 1's whole file, and resuming from it
+    ends exactly where the uninterrupted run does."""
+    import os
+
+    import torch
+
+    args = [*TINY, "epochs=2", f"dataset.root={tmp_path / 'cache'}"]
+    full = tmp_path / "full"
+    assert _train([*args, f"hydra.run.dir={full}"]).returncode == 0
+    (tmp_path / "inject").mkdir()
+    (tmp_path / "inject" / "sitecustomize.py").write_text(SIGTERM_IN_SECOND_WRITE)
+    run = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", *args, f"hydra.run.dir={run}"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "inject"),
+                                                                         os.environ.get("PYTHONPATH", "")])})
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 143 and len(err) == 1 and err[0].startswith("mvtn-train: interrupted by SIGTERM"), r.stderr
+    assert f"resume with: mvtn-train ckpt_path={run / 'last.pt'}" in err[0]
+    assert not list(run.glob(".*.tmp")) and not (run / "metrics.json").exists()
+    assert torch.load(run / "last.pt", weights_only=True)["epoch"] == 1
+    assert json.loads((run / "status.json").read_text())["status"] == "interrupted"
+    again = _train([f"ckpt_path={run / 'last.pt'}"], cwd=tmp_path)
+    assert again.returncode == 0, again.stderr[-3000:]
+    a, b = (json.loads((d / "metrics.json").read_text()) for d in (full, run))
+    assert a["test_acc"] == b["test_acc"] and [h["train_loss"] for h in a["history"]] == [h["train_loss"] for h in b["history"]]

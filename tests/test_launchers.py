@@ -201,7 +201,7 @@ def test_a_requeued_submitit_job_resumes_in_its_own_dir(default_folder_sweeps):
                        env={**os.environ, "SUBMITIT_EXECUTOR": "local", "SUBMITIT_LOCAL_JOB_ID": job_id})
     assert r.returncode == 0, r.stderr[-3000:]
     assert _one_sweep_dir(cwd) == sweep
-    assert "requeued: going on from" in (job / "train.log").read_text() and (job / "metrics.json").is_file()
+    assert "started again: going on from" in (job / "train.log").read_text() and (job / "metrics.json").is_file()
     assert json.loads((job / "status.json").read_text())["status"] == "ok"
 
 

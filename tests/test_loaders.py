@@ -74,3 +74,21 @@ def test_workers_are_kept_between_epochs_and_released(tmp_path):
     loaders.release(ds)
     assert all(not w.is_alive() for w in workers)
     assert loaders.train_loader(cfg, ds, 0) is not first
+
+
+def test_a_ranks_share_keeps_its_eval_workers_between_passes_and_releases_them(tmp_path):
+    """Under torchrun each rank validates its own share: the same Subset every pass, so its loader
+    and workers are kept (they were rebuilt at every validation), and release stops them."""
+    cfg = as_config(tiny_config(str(tmp_path), batch_size=4, **{"dataset.num_workers": 2}))
+    ds, world = _Items(), World(2, 1)
+    share = loaders.shard_of(ds, world)
+    assert loaders.shard_of(ds, world) is share and loaders.shard_of(ds, World(2, 0)) is not share
+    ev = loaders.eval_loader(cfg, share)
+    assert [n for b in ev for n in b["names"]] == [f"s{i}" for i in range(10, 20)]
+    pids = [w.pid for w in ev._iterator._workers]
+    again = loaders.eval_loader(cfg, loaders.shard_of(ds, world))
+    assert again is ev and [n for b in again for n in b["names"]] == [f"s{i}" for i in range(10, 20)]
+    assert [w.pid for w in again._iterator._workers] == pids
+    workers = ev._iterator._workers
+    loaders.release(ds)
+    assert all(not w.is_alive() for w in workers) and loaders.shard_of(ds, world) is not share

@@ -7,6 +7,7 @@ Examples: ``mvtn-train``, ``mvtn-train +experiment=synthetic_circular views=1``,
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import sys
@@ -19,7 +20,7 @@ from hydra.types import RunMode
 from omegaconf import OmegaConf
 
 from ..data.shapes import ShapeError
-from ..engine import checkpoint
+from ..engine import checkpoint, distributed
 from ..engine import run_dir as run_dir_state
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
@@ -40,6 +41,23 @@ class Interrupted(Exception):
 
 def _raise_interrupted(signum, frame):
     raise Interrupted(signum)
+
+
+def who() -> str:
+    """`` (rank R)`` in a run of several processes (torchrun), else nothing: each process's line names it."""
+    world = distributed.from_env()
+    return f" (rank {world.rank})" if world.enabled else ""
+
+
+def peer_stopped(exc: BaseException) -> bool:
+    """A collective failed because another process of this torchrun run stopped (gloo: the
+    connection closed; NCCL: a ``DistError``); that process's own line says why."""
+    import torch.distributed as dist
+
+    text = str(exc)
+    return distributed.from_env().enabled and (
+        isinstance(exc, dist.DistError) or any(s in text for s in ("Connection closed by peer", "Connection reset by peer",
+                                                                   "gloo", "NCCL", "ProcessGroup")))
 
 
 def resume_config(cfg, overrides: list[str]) -> TrainConfig:
@@ -100,28 +118,37 @@ def requeued_checkpoint(run_dir: Path, sweep_job: bool = False) -> Path | None:
     sweep into the same ``hydra.sweep.dir``): its ``last.pt``, to go on from; None for a first
     start or a run that finished."""
     last = run_dir / "last.pt"
-    if (sweep_job or os.environ.get("SUBMITIT_EXECUTOR")) and last.is_file() and not (run_dir / "metrics.json").is_file():
+    if (sweep_job or os.environ.get("SUBMITIT_EXECUTOR") or torchrun_job()) and last.is_file() \
+            and not (run_dir / "metrics.json").is_file():
         return last
     return None
+
+
+def torchrun_job() -> bool:
+    """A torchrun run in its own folder (``shared_run_dir``): a restart (``--max-restarts``) or the
+    same job started again (a requeued Slurm job with the same ``--rdzv-id``) goes on from there."""
+    return distributed.from_env().enabled and "TORCHELASTIC_RUN_ID" in os.environ
 
 
 def keep_finished_job(cfg, run_dir: Path, multirun: bool) -> bool:
     """A sweep or cluster job started again in its own run dir: True when it finished before (its
     result is kept, nothing to do); with ``last.pt`` and no result it goes on from there
     (``cfg.ckpt_path`` set); ``overwrite=true`` starts it over instead."""
-    if cfg.ckpt_path or not (multirun or os.environ.get("SUBMITIT_EXECUTOR")):
+    if cfg.ckpt_path or not (multirun or os.environ.get("SUBMITIT_EXECUTOR") or torchrun_job()):
         return False
     if cfg.overwrite:
         run_dir_state.check_new_run(run_dir, overwrite=True)
         return False
     if (run_dir / "metrics.json").is_file():
-        print(f"mvtn-train: {run_dir} finished before; kept (overwrite=true trains it again)", file=sys.stderr)
+        if distributed.from_env().main:
+            print(f"mvtn-train: {run_dir} finished before; kept (overwrite=true trains it again)", file=sys.stderr)
         return True
     requeued = requeued_checkpoint(run_dir, multirun)
     if requeued is not None:
         cfg.ckpt_path = str(requeued)
-        with open(run_dir / "train.log", "a") as f:
-            f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] requeued: going on from {requeued}\n")
+        if distributed.from_env().main:
+            with open(run_dir / "train.log", "a") as f:
+                f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] started again: going on from {requeued}\n")
     return False
 
 
@@ -132,7 +159,7 @@ def _app(cfg) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _raise_interrupted)
     try:
-        if int(os.environ.get("RANK", "0")) == 0:
+        if distributed.from_env().main:
             run_dir_state.lock(run_dir)  # held since main() for a named run dir; sweep jobs take theirs here
     except run_dir_state.RunDirBusy as exc:
         print(f"mvtn-train: error: {exc}", file=sys.stderr)
@@ -157,8 +184,18 @@ def _app(cfg) -> None:
         print(f"mvtn-train: interrupted by {exc}; the last finished epoch is saved, {how}", file=sys.stderr)
         with open(run_dir / "train.log", "a") as f:
             f.write(f"mvtn-train: interrupted by {exc}; {how}\n")
-        mark_failed(run_dir, "interrupted", how)
+        if not (who() and (run_dir / "status.json").is_file()):  # (torchrun stops the others when one fails:
+            mark_failed(run_dir, "interrupted", how)               # that one's reason stays the run's status)
         sys.exit(128 + exc.signum)
+    except RuntimeError as exc:
+        if not peer_stopped(exc) or os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        first = " ".join(str(exc).split())[:160]
+        print(f"mvtn-train: error{who()}: another process of this run stopped, so this one stops too; that "
+              f"process's own line says why ({first})", file=sys.stderr)
+        if not (run_dir / "status.json").is_file():  # the failing process's reason stays the run's status
+            mark_failed(run_dir, "error", f"another process of this run stopped ({first})")
+        sys.exit(1)
     except (CheckpointMismatch, OSError, NotImplementedError, ShapeError, ValueError, TrainingDiverged) as exc:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise  # the full traceback, on request
@@ -171,17 +208,17 @@ def _app(cfg) -> None:
             sys.exit(2)
         kind = "training diverged" if isinstance(exc, TrainingDiverged) else "error"
         text = os_error_text(exc) if isinstance(exc, OSError) else str(exc)
-        print(f"mvtn-train: {kind}: {text}", file=sys.stderr)
+        print(f"mvtn-train: {kind}{who()}: {text}", file=sys.stderr)
         try:
             with open(run_dir / "train.log", "a") as f:  # the run's record keeps the reason too
-                f.write(f"mvtn-train: {kind}: {text}\n")
+                f.write(f"mvtn-train: {kind}{who()}: {text}\n")
         except OSError:
             pass  # (a full disk: stderr is all there is)
         mark_failed(run_dir, kind, text)  # no run dir is left looking like an unfinished run
         if hc.mode == RunMode.MULTIRUN:  # recorded for the sweep summary: go on with the next job
             return
         sys.exit(EXIT_CODES.get(type(exc), 1 if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError) else 2))
-    if int(os.environ.get("RANK", "0")) == 0:
+    if distributed.from_env().main:
         print(run_dir / "metrics.json")
 
 
@@ -233,11 +270,11 @@ def summary(argv: list[str]) -> int:
 
 
 def shared_run_dir(argv: list[str]) -> list[str]:
-    """Under torchrun (``WORLD_SIZE`` > 1): join the process group and give every rank rank 0's run
-    dir (``hydra.run.dir``); the other ranks write no Hydra record and log to the console only
+    """Under torchrun (``WORLD_SIZE`` > 1): join the process group and give every rank the same run
+    dir: ``hydra.run.dir`` if given, else ``<paths.output_dir>/train/runs/torchrun-<rdzv id>``, the
+    same for every restart of the job (``--max-restarts``: ``keep_finished_job`` goes on from its
+    ``last.pt``). The other ranks write no Hydra record and log to the console only
     (``engine/distributed.py``: rank 0 alone writes the run). A sweep (``-m``) is refused."""
-    from ..engine import distributed
-
     world = distributed.from_env()
     if not world.enabled:
         return argv
@@ -245,16 +282,12 @@ def shared_run_dir(argv: list[str]) -> list[str]:
         print("mvtn-train: error: torchrun runs one training job on several processes; sweep with a launcher "
               "(hydra/launcher=...) instead of -m", file=sys.stderr)
         sys.exit(2)
-    import torch
-    import torch.distributed as dist
-
-    if not dist.is_initialized():
-        dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
-    given = next((a.split("=", 1)[1] for a in argv if a.startswith("hydra.run.dir=")), None)
-    if given is None:
-        out = next((a.split("=", 1)[1] for a in argv if a.startswith("paths.output_dir=")), "outputs")
-        given = distributed.broadcast(f"{out}/train/runs/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}", world)
-        argv = [*argv, f"hydra.run.dir={given}"]
+    distributed.join(world)
+    if not any(a.startswith("hydra.run.dir=") for a in argv):  # one folder per torchrun job, kept over restarts
+        run_id = re.sub(r"[^A-Za-z0-9_.-]", "_", os.environ.get("TORCHELASTIC_RUN_ID", ""))
+        name = (f"torchrun-{run_id}" if run_id else
+                distributed.broadcast(f"{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}", world))
+        argv = [*argv, f"hydra.run.dir=${{paths.output_dir}}/train/runs/{name}"]  # (paths.output_dir as composed)
     if not world.main:
         argv = [*argv, "hydra.output_subdir=null", "hydra/job_logging=stdout"]
     return argv
@@ -270,10 +303,11 @@ def claim_run_dir(argv: list[str]) -> None:
     run's life (a second run into a busy folder: one line, exit 2; ``engine/run_dir.py``)."""
     given = dict(a.lstrip("+").split("=", 1) for a in argv if "=" in a)
     folder = given.get("hydra.run.dir")
-    if folder is None or any(a in ("-m", "--multirun") for a in argv) or int(os.environ.get("RANK", "0")) != 0:
+    if folder is None or any(a in ("-m", "--multirun") for a in argv) or not distributed.from_env().main:
         return
     try:
-        if given.get("ckpt_path", "null") in ("null", ""):
+        restarted = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")) > 0  # torchrun --max-restarts: its own run
+        if given.get("ckpt_path", "null") in ("null", "") and not restarted:
             run_dir_state.check_new_run(folder, given.get("overwrite", "false").lower() in TRUE)
         run_dir_state.lock(folder)
     except (run_dir_state.RunDirBusy, run_dir_state.RunDirTaken) as exc:

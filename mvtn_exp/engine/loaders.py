@@ -17,6 +17,7 @@ from ..schema import TrainConfig
 from . import distributed
 
 # attribute under which a dataset keeps its persistent loaders (they live and die with it)
+_SHARDS = "_mvtn_shards"  # rank shares of a dataset (shard_of)
 _CACHE = "_mvtn_loaders"
 
 
@@ -118,9 +119,22 @@ def eval_loader(cfg: TrainConfig, dataset) -> DataLoader:
     return _keep(dataset, key, _Loader(dataset, batch_size=cfg.batch_size, shuffle=False, **_common(cfg)))
 
 
+def shard_of(dataset, world: distributed.World):
+    """This rank's contiguous share of ``dataset`` (``distributed.shard``) as a ``Subset``, the same
+    object at every pass, so that its ``eval_loader`` and that loader's workers are kept too."""
+    from torch.utils.data import Subset
+
+    shards = dataset.__dict__.setdefault(_SHARDS, {})
+    key = (world.rank, world.size)
+    if key not in shards:
+        shards[key] = Subset(dataset, distributed.shard(list(range(len(dataset))), world))
+    return shards[key]
+
+
 def release(*datasets) -> None:
-    """Stop the worker processes of the datasets' persistent loaders."""
+    """Stop the worker processes of the datasets' persistent loaders (their shards' too)."""
     for ds in datasets:
+        release(*ds.__dict__.pop(_SHARDS, {}).values())
         for loader in ds.__dict__.pop(_CACHE, {}).values():
             it = getattr(loader, "_iterator", None)
             if it is not None and hasattr(it, "_shutdown_workers"):

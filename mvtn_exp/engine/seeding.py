@@ -14,6 +14,15 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def for_rank(seed: int, rank: int, size: int) -> int:
+    """The seed of process ``rank``'s own random stream in a run of ``size`` processes: ``seed``
+    itself in one process, else a seed drawn from (seed, rank), so that no two ranks draw the same
+    rotation, light, colour or perturbation for their i-th shape."""
+    if size <= 1:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed) % (2 ** 63), int(rank)]).generate_state(1, np.uint64)[0] % (2 ** 63))
+
+
 def rng_state() -> dict:
     """Every global RNG state as plain Python values and tensors, so that a checkpoint holding it
     loads with ``torch.load(weights_only=True)`` (numpy's key array becomes a list)."""
@@ -32,5 +41,6 @@ def set_rng_state(state: dict) -> None:
     name, keys, pos, has_gauss, cached = state["numpy"]
     np.random.set_state((name, np.asarray(keys, dtype=np.uint32), int(pos), int(has_gauss), float(cached)))
     torch.set_rng_state(state["torch"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+    if "cuda" in state and torch.cuda.is_available():  # the devices saved that are visible now (a checkpoint
+        for i, s in enumerate(state["cuda"][:torch.cuda.device_count()]):  # of an 8-GPU machine on a 2-GPU one)
+            torch.cuda.set_rng_state(s, i)

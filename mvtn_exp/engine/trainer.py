@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 from ..data.datasets import build_dataset, view_figures
 from ..data.datasets import view_report as dataset_view_report
 from ..model import MVTN, build_mvtn
+from ..models import sync_bn
 from ..models.precision import grad_scaler
 from ..schema import TrainConfig, typed_train_config
 from ..tasks import classification
@@ -87,9 +88,7 @@ def evaluate_split(model, dataset, cfg: TrainConfig, num_classes: int, desc: str
     if not world.enabled:
         return classification.evaluate(model, eval_loader(cfg, dataset), num_classes, desc=desc,
                                        progress=cfg.logger.progress)
-    from torch.utils.data import Subset
-
-    mine = Subset(dataset, distributed.shard(list(range(len(dataset))), world))
+    mine = loaders.shard_of(dataset, world)  # the same Subset every pass: its loader's workers are kept
     res = classification.evaluate(model, eval_loader(cfg, mine), num_classes, desc=desc,
                                   progress=cfg.logger.progress and world.main)
     parts = distributed.gather({k: res[k] for k in ("confusion", "loss", "n", "azim", "elev", "dist", "labels", "pred")},
@@ -230,11 +229,14 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
                                    f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
         with timer.stage("optimizer"):
             opt.zero_grad(set_to_none=True)
-        timer.backward(scaler.scale(out.objective) if scaling else out.objective, out.views, out.images)
+        objective = out.objective
+        if world.enabled:  # each rank's loss weighted by its share: the sum over ranks is the whole batch's mean
+            n_all = float(distributed.all_sum(torch.tensor(float(len(out.labels)), device=model.device), world))
+            objective = objective * (len(out.labels) / n_all)
+        timer.backward(scaler.scale(objective) if scaling else objective, out.views, out.images)
         with timer.stage("optimizer"):
-            if world.enabled:  # every rank's gradient of its share -> the whole batch's, on every rank
-                n_all = float(distributed.all_sum(torch.tensor(float(len(out.labels)), device=model.device), world))
-                distributed.average_gradients(all_params, len(out.labels) / n_all, world)
+            if world.enabled:  # every rank's gradient of its weighted share -> the whole batch's, on every rank
+                distributed.average_gradients(all_params, 1.0, world)
             if scaling:
                 scaler.unscale_(opt)
             if not _grads_finite(all_params):
@@ -303,6 +305,12 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, sca
             world: distributed.World) -> tuple:
     """Load ``state`` (a last.pt) into the run; returns ``(start epoch, best val acc, best epoch
     (0-based), skipped steps, history, global step)``."""
+    saved = int(state.get("world_size", 1))
+    if saved != world.size:  # each process's random stream is in the checkpoint: the same number of processes
+        raise checkpoint.CheckpointMismatch(
+            f"checkpoint {cfg.ckpt_path!r} was written by a run of {saved} process(es) and this run has {world.size}: "
+            f"resume it with {saved} (torchrun --nproc_per_node={saved}, or no torchrun for 1) to go on exactly, or "
+            f"start a new run")
     if list(state.get("classes", classes)) != classes:
         raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
                                             f"{state['classes']} but the dataset has {classes}")
@@ -327,7 +335,12 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, sca
     for g, base in zip(opt.param_groups, sched.base_lrs):
         g["lr"] = base * group_factor(cfg, g["name"], start)
     sched.last_epoch = start
-    seeding.set_rng_state(state["rng"])
+    if not world.enabled:
+        seeding.set_rng_state(state["rng"])
+    elif "rng_ranks" in state:
+        seeding.set_rng_state(state["rng_ranks"][world.rank])
+    else:  # a best.pt written at the end without the other ranks' streams: a fresh stream per rank
+        seeding.seed_everything(seeding.for_rank(cfg.seed + start, world.rank, world.size))
     src_best = Path(cfg.ckpt_path).with_name("best.pt")
     if (distributed.from_env().main and src_best.is_file()
             and src_best.resolve() != (run_dir / "best.pt").resolve()):
@@ -486,6 +499,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
     if world.enabled:
         check_split_sizes(datasets, world)
     model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
+    if world.enabled and cfg.sync_bn:  # BatchNorm over the global batch (models/sync_bn.py)
+        sync_bn.convert(model)
     if cfg.selector.learned and cfg.selector.from_ckpt:  # view transfer: G from another run, frozen
         if resume is None:  # (a resumed run has it in its own state)
             view_transfer.load_frozen_selector(model, cfg_dict, cfg.selector.from_ckpt)
@@ -497,6 +512,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
     ema = ModelEMA(model, cfg.optim.ema_decay) if cfg.optim.ema_decay is not None else None
     loss_fn = classification.loss_fn(cfg.task)
 
+    if world.enabled:  # from here on each process draws its own stream (augmentation, light, colour, points)
+        seeding.seed_everything(seeding.for_rank(cfg.seed, world.rank, world.size))
     start, best_acc, best_epoch, skipped, history, step = 0, -1.0, -1, 0, [], 0
     train_seconds, train_shapes = 0.0, 0  # this process's training passes (engine/cost.py)
     if resume is not None:
@@ -505,10 +522,13 @@ def train(cfg, run_dir, build_model=None) -> dict:
     if world.main:
         start_record(run_dir, origin, resumed=resume is not None)
 
-    def payload(epoch):
+    def payload(epoch, rngs=None):
+        """``rngs``: every process's RNG state in rank order (``distributed.gather``; this one's alone by default)."""
+        rngs = rngs or [seeding.rng_state()]
         return {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                 # epochs count from 1 as in metrics.json: "epoch" = epochs completed, "best_epoch" 1-based (0: none)
-                "format": checkpoint.FORMAT, "epoch": epoch + 1, "step": step, "rng": seeding.rng_state(),
+                "format": checkpoint.FORMAT, "epoch": epoch + 1, "step": step, "rng": rngs[0],
+                "world_size": world.size, **({"rng_ranks": rngs} if world.enabled and len(rngs) == world.size else {}),
                 "config": cfg_dict, "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "skipped_steps": skipped,
                 "history": history, "scaler": scaler.state_dict(), **({"ema": ema.state_dict()} if ema else {}),
                 "classes": classes, "provenance": origin}
@@ -547,7 +567,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 improved = score > best_acc
                 if improved:
                     best_acc, best_epoch = score, epoch
-                state = {**payload(epoch), **({"train_bn": train_bn} if train_bn is not None else {})}
+                rngs = distributed.gather(seeding.rng_state(), world)  # (every rank takes part)
+                state = {**payload(epoch, rngs), **({"train_bn": train_bn} if train_bn is not None else {})}
                 if improved and world.main:
                     checkpoint.save_atomic(run_dir / "best.pt", {**state, "model": ema.state_dict(), "ema_selected": True}
                                            if use_ema else state)

@@ -22,7 +22,8 @@ over 12 jittered views), while this estimate with K = 6, sigma = 12 has cosine 0
 The perturbed renders run under ``torch.no_grad()`` with the whole model in eval mode (fixed light
 and colour, BatchNorm running statistics, no dropout), so the two sides of a pair differ only in
 the views and no running statistics or random streams of the training step move. The noise comes
-from its own generator, seeded by (run seed, global step): resume stays exact.
+from its own generator, seeded by (run seed, global step, and the rank with several processes):
+resume stays exact.
 """
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from ..selectors.hypotheses import join_views, split_images
+from . import distributed, seeding
 
 
 @contextmanager
@@ -48,7 +50,10 @@ def eval_mode(module: nn.Module) -> Iterator[nn.Module]:
 
 
 def noise_generator(seed: int, step: int) -> torch.Generator:
-    """The perturbations' own CPU generator for global step ``step`` of a run seeded ``seed``."""
+    """The perturbations' own CPU generator for global step ``step`` of a run seeded ``seed`` (each
+    process of a several-process run its own: ``seeding.for_rank``)."""
+    world = distributed.from_env()
+    seed = seeding.for_rank(seed, world.rank, world.size)
     return torch.Generator().manual_seed((int(seed) * 1_000_003 + int(step)) % (2 ** 63))
 
 

@@ -33,6 +33,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .sync_bn import SyncBatchNorm, synchronising
+
 
 def _plain(h: Tensor, conv: nn.Conv1d, bn: nn.BatchNorm1d) -> Tensor:
     return F.relu(bn(conv(h))).amax(dim=2)
@@ -96,7 +98,8 @@ def pooled_layer(h: Tensor, conv: nn.Conv1d, bn: nn.BatchNorm1d) -> Tensor:
     ``conv``: ``Conv1d(Cin, C, 1, bias=False)``; ``bn``: ``BatchNorm1d(C)`` with affine weights.
     """
     batch_stats = bn.training or not bn.track_running_stats
-    if not batch_stats or h.shape[0] * h.shape[2] <= 1 or conv.bias is not None or not bn.affine:
+    if (not batch_stats or h.shape[0] * h.shape[2] <= 1 or conv.bias is not None or not bn.affine
+            or (isinstance(bn, SyncBatchNorm) and synchronising())):  # statistics over every process's share
         return _plain(h, conv, bn)
     weight = conv.weight[:, :, 0]
     out, mean, var = _PooledLayer.apply(h, weight, bn.weight, bn.bias, bn.eps)
