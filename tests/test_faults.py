@@ -121,3 +121,29 @@ def test_sigterm_while_a_checkpoint_is_written_keeps_the_previous_one_and_resume
     assert again.returncode == 0, again.stderr[-3000:]
     a, b = (json.loads((d / "metrics.json").read_text()) for d in (full, run))
     assert a["test_acc"] == b["test_acc"] and [h["train_loss"] for h in a["history"]] == [h["train_loss"] for h in b["history"]]
+
+
+def test_two_sweeps_started_at_once_on_one_folder_train_each_job_once_and_lose_nothing(tmp_path):
+    """The same two-job sweep started twice at the same moment into one sweep folder: each job
+    is trained by one of them (the other finds its folder busy or finished), both jobs end with
+    their results, and the folder's summary lists both as finished."""
+    import os
+
+    sweep = tmp_path / "sweep"
+    args = ["-m", *TINY, "seed=0,1", f"dataset.root={tmp_path / 'cache'}", f"hydra.sweep.dir={sweep}"]
+    assert _train([*TINY, f"dataset.root={tmp_path / 'cache'}", f"hydra.run.dir={tmp_path / 'warm'}"]).returncode == 0
+    procs = [subprocess.Popen([sys.executable, "-m", "mvtn_exp.cli.train", *args], cwd=ROOT, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+             for _ in range(2)]
+    errs = [p.communicate(timeout=300)[1] for p in procs]
+    assert all("Traceback" not in e for e in errs), errs
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert len(jobs) == 2
+    for job in jobs:
+        assert json.loads((job / "metrics.json").read_text())["config"]["seed"] in (0, 1)
+        assert (job / "train.log").read_text().count("epoch 1/1:") == 1  # trained once, not twice over each other
+        assert json.loads((job / "status.json").read_text())["status"] == "ok"
+    r = _train(["--summary", str(sweep)])
+    assert r.returncode == 0, r.stderr
+    rows = (sweep / "summary.csv").read_text().splitlines()[1:]
+    assert len(rows) == 2 and all(",ok," in row for row in rows)
