@@ -68,6 +68,15 @@ def tiny_config(cache, **kw) -> dict:
     return cfg
 
 
+def injected(tmp_path: Path, code: str) -> dict:
+    """The environment for a CLI subprocess that runs ``code`` at start-up (a ``sitecustomize``
+    module in its own folder first on ``PYTHONPATH``): how the fault tests inject a failure."""
+    folder = tmp_path / "inject"
+    folder.mkdir(exist_ok=True)
+    (folder / "sitecustomize.py").write_text(code)
+    return {"PYTHONPATH": os.pathsep.join([str(folder), os.environ.get("PYTHONPATH", "")])}
+
+
 def run_in_processes(target, args_per_process: list[tuple], timeout: float = 120) -> None:
     """Start ``target(*args)`` in one spawned process per entry, side by side; each must exit 0."""
     import multiprocessing as mp

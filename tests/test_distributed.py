@@ -25,11 +25,11 @@ def _args(cache, run) -> list[str]:
             f"dataset.root={cache}", "logger.progress=false", "logger.tensorboard=false", f"hydra.run.dir={run}"]
 
 
-def _torchrun(n: int, args: list[str], timeout=400, **env_extra):
+def _torchrun(n: int, args: list[str], timeout=400, flags=(), **env_extra):
     env = {k: v for k, v in os.environ.items() if k not in ("WORLD_SIZE", "RANK", "LOCAL_RANK")}
-    return subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={n}",
-                           "-m", "mvtn_exp.cli.train", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=timeout, env={**env, "OMP_NUM_THREADS": "1", **env_extra})
+    return subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", *flags,
+                           f"--nproc_per_node={n}", "-m", "mvtn_exp.cli.train", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout, env={**env, "OMP_NUM_THREADS": "1", **env_extra})
 
 
 @pytest.mark.parametrize("n,size", [(2, 9), (3, 7), (4, 4), (1, 5)])
@@ -195,11 +195,11 @@ if os.environ.get("RANK") == "1":  # rank 1's third training step raises, as a u
 def test_one_process_failing_stops_every_process_with_one_line_each(cache, tmp_path):
     """Rank 1 fails mid-epoch while rank 0 waits in a collective: both stop within the timeout,
     each with one line of its own and no traceback of ours; status.json keeps rank 1's reason."""
-    (tmp_path / "inject").mkdir()
-    (tmp_path / "inject" / "sitecustomize.py").write_text(FAIL_ON_RANK)
+    from conftest import injected
+
     run = tmp_path / "run"
     out = _torchrun(2, [a.replace("batch_size=8", "batch_size=4") for a in _args(cache, run)], timeout=120,
-                    PYTHONPATH=os.pathsep.join([str(tmp_path / "inject"), os.environ.get("PYTHONPATH", "")]))
+                    **injected(tmp_path, FAIL_ON_RANK))
     assert out.returncode != 0
     ours = [line for line in out.stderr.splitlines() if line.startswith("mvtn-train")]
     assert ours[0] == "mvtn-train: error (rank 1): injected failure" or ours[1] == "mvtn-train: error (rank 1): injected failure"
@@ -229,14 +229,10 @@ def test_torchrun_max_restarts_goes_on_from_last_pt_in_the_same_folder(runs, cac
     epoch 1's last.pt in the same folder (under paths.output_dir) and ends exactly as the
     uninterrupted two-process run."""
     base, _ = runs
-    (tmp_path / "inject").mkdir()
-    (tmp_path / "inject" / "sitecustomize.py").write_text(KILL_FIRST_ATTEMPT)
-    env = {k: v for k, v in os.environ.items() if k not in ("WORLD_SIZE", "RANK", "LOCAL_RANK")}
+    from conftest import injected
+
     args = [a for a in _args(cache, "") if not a.startswith("hydra.run.dir=")] + [f"paths.output_dir={tmp_path / 'out'}"]
-    out = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--max-restarts=1",
-                          "--nproc_per_node=2", "-m", "mvtn_exp.cli.train", *args], cwd=ROOT, capture_output=True,
-                         text=True, timeout=300, env={**env, "OMP_NUM_THREADS": "1", "PYTHONPATH": os.pathsep.join(
-                             [str(tmp_path / "inject"), os.environ.get("PYTHONPATH", "")])})
+    out = _torchrun(2, args, timeout=300, flags=["--max-restarts=1"], **injected(tmp_path, KILL_FIRST_ATTEMPT))
     assert out.returncode == 0, out.stderr[-3000:]
     runs_dir = tmp_path / "out" / "train" / "runs"
     (run,) = list(runs_dir.iterdir())

@@ -104,13 +104,12 @@ def test_sigterm_while_a_checkpoint_is_written_keeps_the_previous_one_and_resume
     args = [*TINY, "epochs=2", f"dataset.root={tmp_path / 'cache'}"]
     full = tmp_path / "full"
     assert _train([*args, f"hydra.run.dir={full}"]).returncode == 0
-    (tmp_path / "inject").mkdir()
-    (tmp_path / "inject" / "sitecustomize.py").write_text(SIGTERM_IN_SECOND_WRITE)
+    from conftest import injected
+
     run = tmp_path / "run"
     r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", *args, f"hydra.run.dir={run}"], cwd=ROOT,
                        capture_output=True, text=True, timeout=300,
-                       env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "inject"),
-                                                                         os.environ.get("PYTHONPATH", "")])})
+                       env={**os.environ, **injected(tmp_path, SIGTERM_IN_SECOND_WRITE)})
     err = r.stderr.strip().splitlines()
     assert r.returncode == 143 and len(err) == 1 and err[0].startswith("mvtn-train: interrupted by SIGTERM"), r.stderr
     assert f"resume with: mvtn-train ckpt_path={run / 'last.pt'}" in err[0]
