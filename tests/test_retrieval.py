@@ -245,13 +245,29 @@ def test_shrec_n_capped_and_graded_ndcg():
     graded = shrec17_metrics(_Q[:1], _QL[:1], _DB, _DL, n=3, query_sublabels=["a"], db_sublabels=subs)
     assert graded["per_query"]["NDCG"][0] == pytest.approx((2 + 3 * g) / 5)
     assert graded["micro"]["P@N"] == pytest.approx(2 / 3)  # P/R use binary relevance
-    # a query labelled only at its synset: item 0 (another sub-synset) 1, item 2 (synset only) 2
-    assert shrec17_gains(_DL == 0, None, subs).tolist() == [1.0, 0.0, 2.0, 0.0]
+    # a query labelled only at its synset: item 0 (a sub-synset) 1, item 2 (synset only too: the
+    # evaluator's sub-synset ids are equal, both the synset's) 3
+    assert shrec17_gains(_DL == 0, None, subs).tolist() == [1.0, 0.0, 3.0, 0.0]
     assert shrec17_gains(_DL == 0, "b", subs).tolist() == [1.0, 0.0, 2.0, 0.0]  # a sibling sub-synset: 1
     none_rel = shrec17_metrics([[0.0]], [7], _DB, _DL, n=2)  # no relevant item anywhere
     assert all(v == 0.0 for v in none_rel["micro"].values())
     with pytest.raises(ValueError):
         shrec17_metrics(_Q, _QL, _DB, _DL, query_sublabels=["a"] * 3)
+
+
+def test_shrec_synset_only_models_grade_as_the_evaluator_does():
+    """The toy case: one synset, the query and two database models labelled only at the synset,
+    two with a sub-synset. The evaluator gives synset-only pairs 3 (equal sub-synset ids in the
+    CSV); grading them 2 (the former reading) gives another NDCG."""
+    db = np.arange(5.0)[:, None]
+    labels = np.zeros(5, dtype=int)
+    subs = [None, "a", "b", None, None]  # item 0 is the query itself
+    out = shrec17_metrics([[0.0]], [0], db, labels, n=5, query_sublabels=[None], db_sublabels=subs)
+    g = [3, 1, 1, 3, 3]  # ranked by distance: items 0..4
+    dcg = lambda gs: gs[0] + sum(v / math.log2(r) for r, v in enumerate(gs[1:], start=2))
+    assert out["per_query"]["NDCG"][0] == pytest.approx(dcg(g) / dcg(sorted(g, reverse=True)))
+    former = [2, 1, 1, 2, 2]
+    assert abs(dcg(former) / dcg(sorted(former, reverse=True)) - out["per_query"]["NDCG"][0]) > 0.01
 
 
 def test_shrec_against_a_brute_force_evaluator():
@@ -270,12 +286,14 @@ def test_shrec_against_a_brute_force_evaluator():
         relevant = [j for j in range(n) if y[j] == y[q]]
         hits = [j in relevant for j in top]
 
-        def grade(j):
+        csv_sub = [s_ if s_ is not None else f"synset-{c}" for s_, c in zip(sub, y)]  # the split CSV's column
+
+        def grade(j):  # the evaluator's resultsToScores, on the CSV's sub-synset ids
             if y[j] != y[q]:
                 return 0
-            if sub[q] is not None and sub[j] == sub[q]:
+            if csv_sub[j] == csv_sub[q]:
                 return 3
-            return 2 if sub[j] is None else 1
+            return 2 if csv_sub[j] == f"synset-{y[q]}" else 1
 
         ap = sum(sum(hits[:r + 1]) / (r + 1) for r in range(N) if hits[r]) / len(relevant)
         dcg = lambda gs: sum(g_ if r == 0 else g_ / math.log2(r + 1) for r, g_ in enumerate(gs))

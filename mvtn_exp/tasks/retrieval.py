@@ -232,15 +232,18 @@ def _dcg(gains: np.ndarray) -> float:
 
 
 def shrec17_gains(same: np.ndarray, query_sub, db_subs) -> np.ndarray:
-    """Graded relevance of every database item to one query (SHREC'17 NDCG): 0 other synset; in the
-    query's synset 3 when both carry the same sub-synset, 2 when the item is labelled only at the
-    synset (no sub-synset: ``None``), 1 otherwise (another sub-synset, or the query has none)."""
+    """Graded relevance ``[m]`` of every database item to one query, as the SHREC'17 evaluator
+    grades it (``resultsToScores``). The evaluator reads the split CSV, where a model labelled only
+    at its synset carries the synset as its sub-synset id; here such a model has ``None``. So, in
+    the query's synset (``same``): 3 when the two sub-synset ids are equal (two synset-only models
+    included), 2 when the item is synset-only and the query is not, 1 otherwise (a sibling
+    sub-synset, or a synset-only query and an item with a sub-synset); 0 in another synset."""
     gains = np.zeros(same.shape[0])
     if db_subs is None:
         gains[same] = 1.0
         return gains
-    db_none = np.array([d is None for d in db_subs])
-    exact = np.array([d is not None and d == query_sub for d in db_subs]) if query_sub is not None else np.zeros_like(db_none)
+    db_none = np.array([d is None for d in db_subs], dtype=bool)
+    exact = np.array([d == query_sub for d in db_subs], dtype=bool)  # None == None: both synset-only
     gains[same] = 1.0
     gains[same & db_none] = 2.0
     gains[same & exact] = 3.0
