@@ -114,7 +114,8 @@ def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
     C is built first and G's initialisation draws from a forked RNG, so that at the same seed C's
     initial weights and every later random draw (order, light, colour) are the same whichever
     selector is chosen: fixed and learned views are compared on equal terms."""
-    mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=cfg.backbone.weights)
+    mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=cfg.backbone.weights,
+                            input_norm=cfg.backbone.input_norm)
     with torch.random.fork_rng(devices=[]):
         selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder)
     model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,

@@ -206,7 +206,7 @@ def test_help_lists_the_keys_of_the_options_chosen_on_the_command_line(capsys):
     assert e.value.code == 0
     sel = out.split("selector.{", 1)[1].split("}")[0].split(",")
     assert "gain" in sel and "race_epochs" in sel and "regressor" not in sel
-    assert "mvnet.{name,dropout,k,stages}" in out and "poi*" in out
+    assert "mvnet.{name,dropout,k,fps_start,level_views,stages}" in out and "poi*" in out
 
 
 def test_tradeoff_study_grid_composes_and_compares_fixed_with_learned():

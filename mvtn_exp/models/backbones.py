@@ -20,9 +20,12 @@ from typing import Callable, Optional, Union
 import torch
 from torch import Tensor, nn
 
+from ..checks import one_of
 from ..options import OPTIONS, OptionConfig
 
 PathLike = Union[str, "os.PathLike[str]"]
+IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+INPUT_NORMS = ("auto", "imagenet", "none")
 
 class _Backbone(nn.Module):
     """Shared interface: ``features(x) -> [N, feature_dim]``, ``forward(x) = fc(features(x))``."""
@@ -178,8 +181,10 @@ def load_weights(model: nn.Module, path: PathLike) -> nn.Module:
     """Load a local state_dict file (plain, or under a 'state_dict'/'model' key) into ``model``.
 
     If only the classifier's output size differs (``fc.weight`` is ``[K', feature_dim]``; ``head``
-    for models whose ``classifier`` says so, the ViTs), every other tensor is loaded and the
-    classifier keeps its fresh initialisation. Missing
+    for models whose ``classifier`` says so, the ViTs), or the file has no classifier at all (a
+    self-supervised backbone such as DINO's), every other tensor is loaded and the classifier keeps
+    its fresh initialisation. Keys under a ``module.`` (DataParallel) or ``backbone.`` prefix (DINO's
+    training checkpoints, ``teacher``) are read without it when the bare keys do not match. Missing
     ``*.num_batches_tracked`` buffers (old torchvision files) are tolerated.
     Raises FileNotFoundError / ValueError naming the file and the offending keys.
     """
@@ -191,19 +196,21 @@ def load_weights(model: nn.Module, path: PathLike) -> nn.Module:
     except Exception as e:  # corrupt file, pickle with non-tensor objects, ...
         raise ValueError(f"could not read backbone weights from '{path}': {e}") from e
     if isinstance(obj, Mapping):
-        for key in ("state_dict", "model"):
+        for key in ("state_dict", "model", "teacher"):
             if isinstance(obj.get(key), Mapping):
                 obj = obj[key]
                 break
     if not isinstance(obj, Mapping) or not all(isinstance(v, Tensor) for v in obj.values()):
         raise ValueError(f"'{path}' does not hold a state_dict (a mapping of names to tensors)")
-    sd = dict(obj)
     own = model.state_dict()
+    sd = _strip_wrapper(dict(obj), own)
     head = getattr(model, "classifier", "fc")
     fw, own_fw = sd.get(f"{head}.weight"), own.get(f"{head}.weight")
     if (fw is not None and own_fw is not None and fw.dim() == 2
             and fw.shape[1] == own_fw.shape[1] and fw.shape[0] != own_fw.shape[0]):
         sd[f"{head}.weight"], sd[f"{head}.bias"] = own[f"{head}.weight"], own[f"{head}.bias"]  # keep the fresh head
+    if fw is None and f"{head}.bias" not in sd and own_fw is not None:  # a backbone without classifier (DINO)
+        sd[f"{head}.weight"], sd[f"{head}.bias"] = own[f"{head}.weight"], own[f"{head}.bias"]
     for k, v in own.items():
         if k.endswith("num_batches_tracked") and k not in sd:
             sd[k] = v
@@ -218,6 +225,15 @@ def load_weights(model: nn.Module, path: PathLike) -> nn.Module:
         raise ValueError(f"cannot load '{path}' into {type(model).__name__}: " + "; ".join(parts))
     model.load_state_dict(sd, strict=True)
     return model
+
+
+def _strip_wrapper(sd: dict, own: Mapping) -> dict:
+    """``sd`` with a ``module.`` and then a ``backbone.`` prefix removed (keys without it dropped),
+    each only when no key of ``sd`` matches ``own`` as it is."""
+    for prefix in ("module.", "backbone."):
+        if not any(k in own for k in sd) and any(k.startswith(prefix) for k in sd):
+            sd = {k[len(prefix):]: v for k, v in sd.items() if k.startswith(prefix)}
+    return sd
 
 
 def _resnet(block: type, layers: list[int], num_classes: int, weights: Optional[PathLike],
@@ -289,11 +305,26 @@ register = OPTIONS["backbone"].register
 @dataclass
 class BackboneConfig(OptionConfig):
     """The 2D backbone shared over views. ``weights``: a local torchvision/timm-style state_dict file
-    (nothing is downloaded)."""
+    (nothing is downloaded). ``normalize``: the input scaling the renders get before the backbone:
+    ``imagenet`` ((x - mean) / std with ImageNet's mean and std, what pretrained weights were
+    trained on), ``none`` (the renders' [0, 1]), ``auto`` (imagenet when ``weights`` is given)."""
 
     weights: Optional[str] = None
+    normalize: str = "auto"
 
     kind = "backbone"
+
+    def validate(self) -> "BackboneConfig":
+        super().validate()
+        one_of("backbone.normalize", self.normalize, INPUT_NORMS)
+        return self
+
+    @property
+    def input_norm(self) -> str:
+        """``imagenet`` or ``none``: ``normalize`` with ``auto`` resolved."""
+        if self.normalize == "auto":
+            return "imagenet" if self.weights is not None else "none"
+        return self.normalize
 
     @property
     def feature_dim(self) -> int:

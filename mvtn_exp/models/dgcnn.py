@@ -8,6 +8,8 @@
                                                          graph"), widths 64, 64, 128, 256
     g = LeakyReLU(BN(W [x_1, x_2, x_3, x_4]))             [B, emb_dims, N]
     features = head([max_N g, mean_N g])                 [B, out_features]
+    head = Linear(2 emb_dims, 512)-BN-LeakyReLU-Dropout, Linear(512, 256)-BN-LeakyReLU-Dropout,
+           Linear(256, out_features)                     the original classifier (dropout 0.5)
 
 The neighbours of the first layer are found in xyz, those of the later layers in the previous
 layer's features; each point counts as its own nearest neighbour, as in the reference code. Needs
@@ -15,13 +17,13 @@ N >= k points (checked at compose time against the points G reads).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import torch
 from torch import Tensor, nn
 
-from ..checks import at_least
+from ..checks import at_least, fraction
 from .point_encoders import PointEncoderConfig, register
 
 EDGE_WIDTHS = (64, 64, 128, 256)
@@ -61,12 +63,13 @@ class DGCNN(nn.Module):
     """DGCNN encoder: points ``[B, N, 3]`` -> ``[B, out_features]`` (see the module docstring).
 
     ``k``: neighbours per point (20 in the paper); ``emb_dims``: width of the global feature
-    before pooling (1024); ``head_widths``: hidden widths of the head (Linear + BN + LeakyReLU;
-    ``()``: one linear layer from the pooled ``2 * emb_dims``).
+    before pooling (1024); ``head_widths``: hidden widths of the head (Linear + BN + LeakyReLU +
+    Dropout(``dropout``); the original ``(512, 256)``; ``()``: one linear layer from the pooled
+    ``2 * emb_dims``, this project's former head).
     """
 
     def __init__(self, out_features: int = 40, k: int = 20, emb_dims: int = 1024,
-                 head_widths: Sequence[int] = ()) -> None:
+                 head_widths: Sequence[int] = (512, 256), dropout: float = 0.5) -> None:
         super().__init__()
         if int(out_features) != out_features or out_features < 1:
             raise ValueError(f"DGCNN: out_features must be an integer >= 1, got {out_features!r}")
@@ -80,7 +83,7 @@ class DGCNN(nn.Module):
         layers: list[nn.Module] = []
         dims = (2 * emb_dims, *[int(w) for w in head_widths])
         for a, b in zip(dims[:-1], dims[1:]):
-            layers += [nn.Linear(a, b, bias=False), nn.BatchNorm1d(b), nn.LeakyReLU(0.2)]
+            layers += [nn.Linear(a, b, bias=False), nn.BatchNorm1d(b), nn.LeakyReLU(0.2), nn.Dropout(dropout)]
         self.head = nn.Sequential(*layers, nn.Linear(dims[-1], self.out_features))
 
     def forward(self, points: Tensor) -> Tensor:
@@ -102,20 +105,27 @@ class DGCNN(nn.Module):
 @register("dgcnn")
 @dataclass
 class DGCNNConfig(PointEncoderConfig):
-    """DGCNN: ``k`` neighbours per point in feature space, ``emb_dims`` wide before pooling."""
+    """DGCNN: ``k`` neighbours per point in feature space, ``emb_dims`` wide before pooling;
+    ``head_widths`` (the original ``[512, 256]``; ``[]``: one linear layer) with ``dropout``."""
 
     name: str = "dgcnn"
     k: int = 20
     emb_dims: int = 1024
+    head_widths: list[int] = field(default_factory=lambda: [512, 256])
+    dropout: float = 0.5
 
     def validate(self) -> "DGCNNConfig":
         super().validate()
         at_least("point_encoder.k", self.k, 1)
         at_least("point_encoder.emb_dims", self.emb_dims, 1)
+        for w in self.head_widths:
+            at_least("point_encoder.head_widths", w, 1)
+        fraction("point_encoder.dropout", self.dropout)
         return self
 
     def kwargs(self) -> dict:
-        return {"k": self.k, "emb_dims": self.emb_dims}
+        return {"k": self.k, "emb_dims": self.emb_dims, "head_widths": tuple(int(w) for w in self.head_widths),
+                "dropout": float(self.dropout)}
 
     def check_points(self, n: int, where: str) -> None:
         if n < self.k:

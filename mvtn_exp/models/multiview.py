@@ -12,11 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable, Optional, Union
 
+import torch
 from torch import Tensor, nn
 
 from ..checks import fraction, one_of
 from ..options import OPTIONS, OptionConfig
-from .backbones import PathLike, build_backbone, load_weights
+from .backbones import IMAGENET_MEAN, IMAGENET_STD, PathLike, build_backbone, load_weights
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..schema import TrainConfig
@@ -66,12 +67,23 @@ class MVCNN(nn.Module):
         self.pool = pool
         self.dropout = nn.Dropout(dropout)
         self.head = nn.Linear(self.feature_dim, num_classes)
+        self.register_buffer("input_mean", None, persistent=False)  # set by normalize_input
+        self.register_buffer("input_std", None, persistent=False)
+
+    def normalize_input(self, mean, std) -> "MVCNN":
+        """Scale every view ``(x - mean) / std`` per channel before the backbone (ImageNet's for
+        pretrained weights); kept out of the state_dict (a setting, not a learned value)."""
+        self.register_buffer("input_mean", torch.tensor(mean, dtype=torch.float32).view(1, 1, -1, 1, 1), persistent=False)
+        self.register_buffer("input_std", torch.tensor(std, dtype=torch.float32).view(1, 1, -1, 1, 1), persistent=False)
+        return self
 
     def view_features(self, images: Tensor) -> Tensor:
         """``[B, M, C, H, W] -> [B, M, feature_dim]``: the backbone on every view, one call."""
         if images.dim() != 5 or images.shape[1] < 1:
             raise ValueError(f"{type(self).__name__} expects images [B, M, C, H, W] with M >= 1, "
                              f"got {list(images.shape)}")
+        if self.input_mean is not None:
+            images = (images - self.input_mean.to(images.dtype)) / self.input_std.to(images.dtype)
         b, m = images.shape[:2]
         feats = self.backbone.features(images.reshape(b * m, *images.shape[2:]))  # [B*M, D]
         return feats.reshape(b, m, -1)
@@ -167,8 +179,11 @@ class MVNetConfig(OptionConfig):
         """Constructor arguments beyond the backbone, the class count and the weights."""
         return {"dropout": self.dropout}
 
-    def build(self, backbone: str, num_classes: int, weights: Optional[str] = None) -> MVCNN:
-        return build_multiview(self.name, backbone, num_classes, weights=weights, **self.kwargs())
+    def build(self, backbone: str, num_classes: int, weights: Optional[str] = None,
+              input_norm: str = "none") -> MVCNN:
+        """The net; ``input_norm="imagenet"`` scales its input by ImageNet's mean and std."""
+        net = build_multiview(self.name, backbone, num_classes, weights=weights, **self.kwargs())
+        return net.normalize_input(IMAGENET_MEAN, IMAGENET_STD) if input_norm == "imagenet" else net
 
     def stage_span(self, epoch: int, epochs: int) -> tuple[int, int]:
         """``(first epoch, epochs)`` of the training stage holding 0-based ``epoch``: the whole run."""
