@@ -129,7 +129,8 @@ class TaskConfig:
 class OptimConfig:
     """C's optimiser: AdamW at ``lr`` with ``weight_decay``; a learned G has its own group, set in
     the selector (``selector.lr``, ``selector.beta1``, ``selector.clip``). Schedule per epoch, both
-    groups: cosine to 0 or step (x ``step_gamma`` every ``step_size`` epochs). ``ema_decay``: keep
+    groups unless ``decay_selector=false`` (the official code's: the step decay applies to C only, G
+    keeps ``selector.lr``): cosine to 0 or step (x ``step_gamma`` every ``step_size`` epochs). ``ema_decay``: keep
     an exponential moving average of G's and C's weights with this decay (e.g. 0.999; null: none),
     evaluated on validation beside the raw weights every epoch; the better of the two is kept as
     best.pt (``engine/ema.py``)."""
@@ -140,6 +141,7 @@ class OptimConfig:
     schedule: str = "cosine"
     step_size: int = 30
     step_gamma: float = 0.1
+    decay_selector: bool = True
     ema_decay: Optional[float] = None
 
     def validate(self) -> "OptimConfig":

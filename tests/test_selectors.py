@@ -41,7 +41,8 @@ def test_every_selector_shapes_dtypes(name, M, training):
 
 @pytest.mark.parametrize("name", FIXED)
 def test_fixed_selectors_follow_input_dtype_and_are_the_same_for_all_shapes(name):
-    sel = build_selector(name, 6).eval()
+    kw = {"eval_draw": "frozen"} if name == "random" else {}  # fresh: a new draw per shape (below)
+    sel = build_selector(name, 6, **kw).eval()
     azim, elev, dist = sel(clouds(B=5, dtype=torch.float64))
     for t in (azim, elev, dist):
         assert t.dtype == torch.float64
@@ -65,8 +66,10 @@ def test_bad_points_rejected():
 def test_circular_selector(M):
     azim, elev, dist = build_selector("circular", M)(clouds())
     assert (elev == 30.0).all() and (dist == 2.2).all()
-    expected = torch.tensor([360.0 * k / M for k in range(M)])
+    expected = torch.tensor([(90.0 + 360.0 * k / M) % 360.0 for k in range(M)])  # the official code starts at 90
     assert torch.allclose(azim, expected.expand(3, -1), atol=1e-5)
+    azim0 = build_selector("circular", M, azim_start=0.0)(clouds())[0]
+    assert torch.allclose(azim0, torch.tensor([360.0 * k / M for k in range(M)]).expand(3, -1), atol=1e-5)
     azim, elev, dist = build_selector("circular", M, elevation=-10.0, distance=3.0)(clouds())
     assert (elev == -10.0).all() and (dist == 3.0).all()
 
@@ -99,13 +102,34 @@ def test_random_selector_training_redraws_and_is_globally_seeded():
     assert (a1[2] == 2.2).all()
 
 
+def test_random_selector_eval_draws_anew_per_shape_and_each_pass_repeats():
+    """``eval_draw=fresh`` (the official code): new directions for every shape and call at
+    evaluation, the same sequence in every evaluation pass, whatever the global generator."""
+    sel = RandomSelector(7, seed=3)
+    sel.eval()
+    first = [sel(clouds(B=4)) for _ in range(2)]
+    assert not torch.equal(first[0][0], first[1][0])   # each call draws anew
+    assert not torch.equal(first[0][0][0], first[0][0][1])  # each shape too
+    sel.train()
+    sel(clouds(B=4))
+    torch.manual_seed(99)
+    sel.eval()
+    again = [sel(clouds(B=4)) for _ in range(2)]
+    for a, b in zip(first, again):
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    other = RandomSelector(7, seed=4).eval()
+    assert not torch.equal(other(clouds(B=4))[0], first[0][0])
+    with pytest.raises(ValueError, match="selector.eval_draw='new'"):
+        RandomSelector(7, eval_draw="new")
+
+
 def test_random_selector_eval_is_fixed():
-    sel = RandomSelector(7, seed=3).eval()
+    sel = RandomSelector(7, seed=3, eval_draw="frozen").eval()
     a, b = sel(clouds(B=4)), sel(clouds(B=4, seed=9))
     for s, t in zip(a, b):
         assert torch.equal(s, t) and (s == s[:1]).all()
-    assert torch.equal(RandomSelector(7, seed=3).eval()(clouds())[0][0], a[0][0])
-    assert not torch.equal(RandomSelector(7, seed=4).eval()(clouds())[0][0], a[0][0])
+    assert torch.equal(RandomSelector(7, seed=3, eval_draw="frozen").eval()(clouds())[0][0], a[0][0])
+    assert not torch.equal(RandomSelector(7, seed=4, eval_draw="frozen").eval()(clouds())[0][0], a[0][0])
     torch.manual_seed(0)  # the global generator does not matter in eval mode
     assert torch.equal(sel(clouds(B=4))[1], a[1])
 
@@ -128,8 +152,8 @@ OFFSET_VARIANTS = [v for v in VARIANTS if v != "direct"]
 
 
 def u0_of(variant, M, B):
-    if variant == "circular":
-        a, e, d = layouts.circular(M, B)
+    if variant == "circular":  # the official learned circular layout starts at azimuth 180
+        a, e, d = layouts.circular(M, B, azim_start=180.0)
     elif variant == "direct":
         a, e, d = layouts.circular(M, B)
         a, e = torch.zeros_like(a), torch.zeros_like(e)

@@ -113,8 +113,11 @@ def lr_factor(cfg: TrainConfig, epoch: int) -> float:
 
 def group_factor(cfg: TrainConfig, name: str, epoch: int) -> float:
     """``lr_factor`` for parameter group ``name`` ("mvnet" | "selector"), G's scaled by the
-    selector's own ``lr_scale`` (0 from ``selector.stop_epoch`` on: G frozen, C trains on)."""
-    return lr_factor(cfg, epoch) * (cfg.selector.lr_scale(epoch) if name == "selector" else 1.0)
+    selector's own ``lr_scale`` (0 from ``selector.stop_epoch`` on: G frozen, C trains on) and
+    undecayed with ``optim.decay_selector=false`` (the official code)."""
+    if name != "selector":
+        return lr_factor(cfg, epoch)
+    return (lr_factor(cfg, epoch) if cfg.optim.decay_selector else 1.0) * cfg.selector.lr_scale(epoch)
 
 
 def make_optimizer(cfg: TrainConfig, model: MVTN, g_training):

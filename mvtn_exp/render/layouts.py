@@ -16,10 +16,12 @@ def _check_m(M: int) -> None:
         raise ValueError(f"views: expected an integer number of views M >= 1, got {M!r}")
 
 
-def circular(M: int, batch: int = 1, elevation: float = 30.0, distance: float = 2.2, device=None, dtype=torch.float32):
-    """M views at one elevation, azimuths ``360 k / M`` (k = 0..M-1)."""
+def circular(M: int, batch: int = 1, elevation: float = 30.0, distance: float = 2.2, device=None, dtype=torch.float32,
+             azim_start: float = 0.0):
+    """M views at one elevation, azimuths ``azim_start + 360 k / M`` (k = 0..M-1) in [0, 360)."""
     _check_m(M)
-    azim = torch.arange(M, device=device, dtype=dtype) * (360.0 / M)
+    azim = torch.remainder(float(azim_start) + torch.arange(M, dtype=torch.float64) * (360.0 / M), 360.0)
+    azim = azim.to(device=device, dtype=dtype)
     elev = torch.full((M,), float(elevation), device=device, dtype=dtype)
     return _batch(azim, elev, distance, batch)
 

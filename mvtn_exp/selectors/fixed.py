@@ -63,17 +63,18 @@ class ViewSelector(nn.Module):
 
 
 class CircularSelector(ViewSelector):
-    """M views at one ``elevation``, azimuths ``360 k / M``; same for every shape."""
+    """M views at one ``elevation``, azimuths ``azim_start + 360 k / M`` (the official code's fixed
+    circular layout starts at 90); same for every shape."""
 
-    def __init__(self, views: int, elevation: float = 30.0, distance: float = 2.2) -> None:
+    def __init__(self, views: int, elevation: float = 30.0, distance: float = 2.2, azim_start: float = 90.0) -> None:
         super().__init__(views)
-        self.elevation, self.distance = float(elevation), float(distance)
+        self.elevation, self.distance, self.azim_start = float(elevation), float(distance), float(azim_start)
 
     def forward(self, points: Tensor) -> Views:
         """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]``."""
         self._check_points(points)
         return layouts.circular(self.views, points.shape[0], self.elevation, self.distance,
-                                device=points.device, dtype=self._dtype(points))
+                                device=points.device, dtype=self._dtype(points), azim_start=self.azim_start)
 
 
 class SphericalSelector(ViewSelector):
@@ -105,21 +106,35 @@ def random_directions(shape: tuple[int, ...], generator: torch.Generator | None 
     return azim, elev
 
 
+EVAL_DRAWS = ("fresh", "frozen")
+
+
 class RandomSelector(ViewSelector):
     """Random directions, uniform on the sphere, at a fixed ``distance``.
 
     Training mode: new views for every shape at every call, drawn from torch's *global* generator
-    (so ``torch.manual_seed`` makes a run reproducible). Eval mode: one set of M views drawn once
-    from ``seed`` with a private generator, identical for every call and every shape.
+    (so ``torch.manual_seed`` makes a run reproducible). Eval mode, ``eval_draw``:
+    ``fresh`` (the official code): new views for every shape at every call too, drawn from a
+    private generator that restarts from ``seed`` each time the selector enters eval mode, so
+    every evaluation pass over the same loader sees the same draws; ``frozen``: one set of M views
+    drawn once from ``seed``, identical for every call and every shape.
     """
 
-    def __init__(self, views: int, distance: float = 2.2, seed: int = 0) -> None:
+    def __init__(self, views: int, distance: float = 2.2, seed: int = 0, eval_draw: str = "fresh") -> None:
         super().__init__(views)
-        self.distance, self.seed = float(distance), int(seed)
+        if eval_draw not in EVAL_DRAWS:
+            raise ValueError(f"selector.eval_draw={eval_draw!r}: expected one of {', '.join(EVAL_DRAWS)}")
+        self.distance, self.seed, self.eval_draw = float(distance), int(seed), eval_draw
+        self._eval_gen = torch.Generator().manual_seed(self.seed)
         azim, elev = random_directions((self.views,), torch.Generator().manual_seed(self.seed))
         # Non-persistent: a pure function of (views, seed), so checkpoints need not carry it.
         self.register_buffer("eval_azim", azim, persistent=False)
         self.register_buffer("eval_elev", elev, persistent=False)
+
+    def train(self, mode: bool = True) -> "RandomSelector":
+        if not mode and self.training:  # entering eval mode: the fresh draws start over
+            self._eval_gen.manual_seed(self.seed)
+        return super().train(mode)
 
     def forward(self, points: Tensor) -> Views:
         """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]``."""
@@ -127,6 +142,8 @@ class RandomSelector(ViewSelector):
         B, dtype, device = points.shape[0], self._dtype(points), points.device
         if self.training:
             azim, elev = random_directions((B, self.views))
+        elif self.eval_draw == "fresh":
+            azim, elev = random_directions((B, self.views), self._eval_gen)
         else:
             azim, elev = self.eval_azim.expand(B, -1), self.eval_elev.expand(B, -1)
         azim = azim.to(device=device, dtype=dtype).clone()
@@ -134,7 +151,7 @@ class RandomSelector(ViewSelector):
         return azim, elev, torch.full_like(azim, self.distance)
 
     def extra_repr(self) -> str:
-        return f"views={self.views}, distance={self.distance}, seed={self.seed}"
+        return f"views={self.views}, distance={self.distance}, seed={self.seed}, eval_draw={self.eval_draw}"
 
 
 BASE_LAYOUTS = ("circular", "spherical")
@@ -189,14 +206,16 @@ class NoisySelector(ViewSelector):
 @register("circular")
 @dataclass
 class CircularConfig(SelectorConfig):
-    """Fixed: M views at ``elevation`` degrees, azimuths ``360 k / M``; the same for every shape.
-    When: the paper's fixed baseline for upright shapes (ModelNet's MVCNN setting)."""
+    """Fixed: M views at ``elevation`` degrees, azimuths ``azim_start + 360 k / M`` (90: the official
+    code's fixed layout); the same for every shape. When: the paper's fixed baseline for upright
+    shapes (ModelNet's MVCNN setting)."""
 
     name: str = "circular"
     elevation: float = 30.0
+    azim_start: float = 90.0
 
     def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
-        return CircularSelector(views, elevation=self.elevation, distance=self.distance)
+        return CircularSelector(views, elevation=self.elevation, distance=self.distance, azim_start=self.azim_start)
 
 
 @register("spherical")
@@ -220,12 +239,20 @@ class SphericalConfig(SelectorConfig):
 @register("random")
 @dataclass
 class RandomConfig(SelectorConfig):
-    """Random directions, new every training step; one draw from the run's seed at evaluation."""
+    """Random directions, new every training step; at evaluation ``eval_draw``: ``fresh`` (the
+    official code: new directions for every shape, reproducible from the run's seed) or ``frozen``
+    (one draw from the run's seed for every shape)."""
 
     name: str = "random"
+    eval_draw: str = "fresh"
+
+    def validate(self) -> "RandomConfig":
+        super().validate()
+        one_of("selector.eval_draw", self.eval_draw, EVAL_DRAWS)
+        return self
 
     def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
-        return RandomSelector(views, distance=self.distance, seed=seed)
+        return RandomSelector(views, distance=self.distance, seed=seed, eval_draw=self.eval_draw)
 
 
 @dataclass

@@ -116,7 +116,8 @@ class MVTNSelector(ViewSelector):
     point_encoder: a registered name (``mvtn_exp.models.point_encoders``) or an ``nn.Module``
     mapping ``[B, N, 3] -> [B, features]``. features: b (40 in the paper).
     distance: camera distance (the centre of the learned range when ``learn_distance``).
-    elevation: elevation of the circular u0 (circular variant only). init_std: std of the last
+    elevation, azim_start: elevation and first azimuth of the circular u0 (circular variant only;
+    180: the official code's learned circular layout). init_std: std of the last
     layer's weights at initialisation (None: 0 for the offset variants, so they start exactly at
     u0, and PyTorch's default for ``direct``). sphere: the spherical u0's construction
     (``layouts.SPHERES``: equal_area, the paper's, or fibonacci). regressor: ``REGRESSORS``
@@ -132,7 +133,7 @@ class MVTNSelector(ViewSelector):
                  distance_bound: float = 1.0, elevation: float = 30.0,
                  point_encoder_kwargs: Optional[dict] = None, azim_bound: Optional[float] = None,
                  elev_bound: Optional[float] = None, init_std: Optional[float] = None,
-                 sphere: str = "equal_area", regressor: str = "compact") -> None:
+                 sphere: str = "equal_area", regressor: str = "compact", azim_start: float = 180.0) -> None:
         super().__init__(views)
         if variant not in VARIANTS:
             raise ValueError(f"MVTNSelector: unknown variant {variant!r}; allowed: {', '.join(VARIANTS)}")
@@ -146,7 +147,7 @@ class MVTNSelector(ViewSelector):
 
         self.uses_u0 = variant != "direct"
         if variant == "circular":
-            azim0, elev0, _ = layouts.circular(M, 1, elevation=elevation, distance=distance)
+            azim0, elev0, _ = layouts.circular(M, 1, elevation=elevation, distance=distance, azim_start=azim_start)
         elif variant == "direct":  # u = u_bound * tanh(G(S)): no initial views
             azim0, elev0 = torch.zeros(1, M), torch.zeros(1, M)
         else:  # "spherical" and "direct_offset" start from the spherical layout
@@ -279,11 +280,13 @@ class MVTNSphericalConfig(MVTNConfig):
 @register("mvtn_circular")
 @dataclass
 class MVTNCircularConfig(MVTNConfig):
-    """The paper's MVTN-circular: offsets around the circular layout at ``elevation`` degrees."""
+    """The paper's MVTN-circular: offsets around the circular layout at ``elevation`` degrees whose
+    azimuths start at ``azim_start`` (180: the official code's learned circular layout)."""
 
     name: str = "mvtn_circular"
     elevation: float = 30.0
+    azim_start: float = 180.0
     variant = "circular"
 
     def layout_kwargs(self) -> dict:
-        return {"elevation": self.elevation}
+        return {"elevation": self.elevation, "azim_start": self.azim_start}
