@@ -71,9 +71,10 @@ NAMED = [
     Mutant("viewgcn: M // 2, M // 4 for every M", "mvtn_exp/models/viewgcn.py",
            "OFFICIAL_LEVEL_VIEWS.get(m, (m // 2, m // 4))", "(m // 2, m // 4)"),
     Mutant("dgcnn: graph built once from xyz", "mvtn_exp/models/dgcnn.py",
-           "        x = points.transpose(1, 2)\n        feats = []\n        for edge in self.edges:\n            x = edge(x)",
-           "        x = points.transpose(1, 2)\n        feats = []\n        idx0 = knn(x, self.k)\n        for edge in self.edges:\n            x = edge(x)"),
-    Mutant("dgcnn: neighbours from xyz in every layer", "mvtn_exp/models/dgcnn.py",
+           "idx = knn(x.detach(), k)",
+           'idx = (edge_features.__dict__.__setitem__("idx", knn(x.detach(), k)) or edge_features.idx) '
+           'if x.shape[1] == 3 else edge_features.idx'),
+    Mutant("dgcnn: neighbours from the first three channels", "mvtn_exp/models/dgcnn.py",
            "idx = knn(x.detach(), k)", "idx = knn(x.detach()[:, :3], k)"),
     Mutant("dgcnn: edge feature without the centre", "mvtn_exp/models/dgcnn.py",
            "torch.cat([nb - centre, centre], dim=3)", "torch.cat([nb, centre], dim=3)"),

@@ -12,7 +12,7 @@ How a command is checked, without running it (in-process, so the whole file take
 - ``mvtn-prepare`` composes ``conf/prepare.yaml`` the same way; ``mvtn-eval`` ``conf/evaluate/eval.yaml``
   (validated by ``EvalConfig.validate``); ``mvtn-render`` ``conf/render.yaml`` (layout and renderer
   settings validated as ``render_file`` does); ``mvtn-bench`` ``conf/bench.yaml`` (its threads check);
-  ``mvtn-tradeoff`` takes one folder; ``mvtn-compare`` its own parser, and with ``--run`` every side composed as ``mvtn-train`` does.
+  ``mvtn-tradeoff`` takes one folder; ``mvtn-report`` and ``mvtn-compare`` their own parsers, and with ``--run`` every side composed as ``mvtn-train`` does.
 - ``make TARGET``: the target exists in the Makefile.
 - ``python -m MODULE ...``: the module is found (``importlib.util.find_spec``); ``key=value``
   arguments of ``python -m mvtn_exp...`` probes are ``mvtn-train`` overrides and are composed too.
@@ -245,6 +245,17 @@ def check_compare(argv, capsys):
     return None
 
 
+def check_report(argv, capsys):
+    """mvtn-report's own parser."""
+    from mvtn_exp.cli.report import build_parser
+
+    try:
+        build_parser().parse_args(argv)
+    except SystemExit:
+        return capsys.readouterr().err.strip() or "mvtn-report: bad arguments"
+    return None
+
+
 def makefile_targets() -> set[str]:
     return set(re.findall(r"^([A-Za-z0-9_.-]+):", (ROOT / "Makefile").read_text(), flags=re.M))
 
@@ -279,7 +290,7 @@ def check_python(argv, capsys):
 
 CHECKS = {"mvtn-train": check_train, "mvtn-prepare": lambda a, c: check_train(a, c, "mvtn-prepare", "prepare"),
           "mvtn-eval": check_eval, "mvtn-render": check_render, "mvtn-bench": check_bench,
-          "mvtn-tradeoff": check_tradeoff, "mvtn-compare": check_compare, "make": check_make, "python": check_python}
+          "mvtn-tradeoff": check_tradeoff, "mvtn-compare": check_compare, "mvtn-report": check_report, "make": check_make, "python": check_python}
 ENV_ASSIGNMENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*=")
 
 

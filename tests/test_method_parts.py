@@ -86,22 +86,23 @@ class _Peaked(nn.Module):
 
 
 def test_view_selector_keeps_the_most_confident_candidate():
-    """Each sampled view is replaced by the candidate whose class scores are most peaked; keeping
-    the least confident one (or the first) fails."""
+    """Each sampled view is replaced by the candidate whose class scores are most peaked: here the
+    neighbour of a sampled view, not the view itself (keeping the least confident candidate, or
+    always the first, the sampled view, fails)."""
     m, k_cls = 12, 6
     v = _ring(m)
+    centres = farthest_views(v, 4)[0].tolist()
+    j = (centres[0] + 1) % m  # a neighbour of the first sampled view, itself not sampled
+    assert j not in centres
     f = torch.zeros(1, m, k_cls)  # flat scores: confidence 1/6
-    f[0, 5, 2] = 8.0               # view 5 (150 deg) confident; its neighbours are views 4 and 6
+    f[0, j, 2] = 8.0
     sel = ViewSelector(k_cls, k_cls, k=3, fps_start="fixed").eval()
     sel.score = _Peaked()
     out_f, out_v, scores = sel(f, v, 4)
     assert scores.shape == (1, 4, 3, k_cls)
-    centres = v[0, farthest_views(v, 4)[0]]
-    near5 = [i for i, c in enumerate(centres) if (c - v[0, 5]).norm() < 0.6]  # a sampled view next to view 5
-    assert near5, "one sampled view has view 5 among its 3 nearest"
-    i = near5[0]
-    torch.testing.assert_close(out_f[0, i], f[0, 5])
-    torch.testing.assert_close(out_v[0, i], v[0, 5])
+    torch.testing.assert_close(out_f[0, 0], f[0, j])
+    torch.testing.assert_close(out_v[0, 0], v[0, j])
+    torch.testing.assert_close(out_v[0, 1:], v[0, centres[1:]])  # flat candidates: the sampled view itself
 
 
 # --------------------------------------------------------------------------- ViewGCN: local and non-local passes
@@ -174,6 +175,7 @@ def test_vit_position_embedding_is_resampled_not_cropped():
     net = build_backbone("vit_tiny", 10)
     with torch.no_grad():
         net.pos_embed.zero_()
+        net.pos_embed[0, 0] = torch.linspace(-1, 1, 192)  # the class token's own embedding
         ramp = torch.linspace(0, 1, 14)
         grid = net.pos_embed[0, 1:].view(14, 14, -1)
         grid[:, :, 0] = ramp[:, None]  # channel 0: the row

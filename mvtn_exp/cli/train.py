@@ -337,12 +337,22 @@ def resume_sweep(argv: list[str]) -> list[str]:
     return ["-m", *hydra_args, *(overrides.get("task") or []), f"hydra.sweep.dir={sweep}"]
 
 
+def validate_for_training(cfg: TrainConfig) -> TrainConfig:
+    """``TrainConfig.validate``, then the files a new run reads must exist: ``backbone.weights`` and
+    ``selector.from_ckpt`` (one line naming the key; a stored config is not checked for them)."""
+    cfg.validate()
+    for key, path in (("backbone.weights", cfg.backbone.weights), ("selector.from_ckpt", getattr(cfg.selector, "from_ckpt", None))):
+        if path and not Path(path).is_file():
+            raise ValueError(f"{key}={path!r}: no such file (a local file is expected; nothing is downloaded)")
+    return cfg
+
+
 def main() -> None:
     if sys.argv[1:2] == ["--summary"]:
         sys.exit(summary(sys.argv[2:]))
     if sys.argv[1:2] == ["--resume-sweep"]:
         sys.argv[1:] = resume_sweep(sys.argv[2:])
-    check_overrides("mvtn-train", "train", TrainConfig, sys.argv[1:], validate=TrainConfig.validate)
+    check_overrides("mvtn-train", "train", TrainConfig, sys.argv[1:], validate=validate_for_training)
     sys.argv[1:] = resume_in_place(sys.argv[1:])
     check_writable("mvtn-train", sys.argv[1:])
     claim_run_dir(sys.argv[1:])

@@ -1,0 +1,45 @@
+"""``mvtn-report [DIR ...]``: the paper's tables next to this project's finished runs (``engine/report.py``).
+
+Reads every run and evaluation below the folders (``mvtn-train`` and ``mvtn-eval`` run dirs, sweep
+dirs), fills each row of ``paper_tables.yaml`` from the runs that match it, prints the Markdown
+and writes ``report.md`` / ``report.json`` into ``--out`` (default: ``outputs/report``). Without a
+folder it prints the tables with what each row needs. A missing folder or a malformed tables file:
+one line on stderr, exit code 2.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..engine.compare import CompareError, find_runs
+from ..engine.provenance import package_version
+from ..engine.report import TABLES_FILE, ReportError, load_tables, report, to_markdown, write
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mvtn-report", description=__doc__.splitlines()[0].split(": ", 1)[1])
+    p.add_argument("folders", nargs="*", metavar="DIR", help="folders of finished runs, sweeps and evaluations")
+    p.add_argument("--tables", default=str(TABLES_FILE), help="the tables file (default: the packaged paper_tables.yaml)")
+    p.add_argument("--out", default="outputs/report", help="folder for report.md / report.json")
+    p.add_argument("--version", action="version", version=f"mvtn-report (mvtn-exp {package_version()})")
+    return p
+
+
+def main(argv=None) -> None:
+    args = build_parser().parse_args(argv)
+    try:
+        tables = load_tables(args.tables)
+        runs = find_runs(args.folders)
+        result = report(tables, runs)
+        md, _ = write(result, args.out)
+    except (ReportError, CompareError, OSError) as e:
+        print(f"mvtn-report: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    print(to_markdown(result))
+    if args.folders and result["unmatched"]:
+        print(f"mvtn-report: {len(result['unmatched'])} finished run(s) match no row of the tables", file=sys.stderr)
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
