@@ -12,8 +12,9 @@ Two kinds of mutant, each applied to a copy of this tree (the checkout is never 
   and boolean constant of ``mvtn_exp/models``, ``selectors`` and ``tasks`` is a candidate; ``--auto
   N`` draws N of them per module (seeded), each swapped for its opposite.
 
-A mutant is *killed* when the tests that read its module (the test files naming the module's
-stem) fail or error within ``--timeout`` seconds; *survived* when they pass. Prints a table per
+A mutant is *killed* when the tests of its module (``TEST_FILES``) fail or error within
+``--timeout`` seconds; *survived* when they pass. Tests that fail on the unmutated tree (possible
+with ``--tests-rev``) are left out first, and listed. Prints a table per
 module (Markdown) and writes ``OUT/mutants.json``. Runs one mutant at a time, each pytest on one
 torch thread; expect minutes per module.
 """
@@ -205,12 +206,23 @@ def make_tree(tests_rev: str | None) -> Path:
     return tmp
 
 
-def run_tests(tree: Path, files: list[str], timeout: float) -> str:
-    """``killed`` / ``survived`` / ``timeout`` for the test ``files`` in ``tree``."""
+def _pytest(tree: Path, args: list[str], timeout: float):
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", PYTHONDONTWRITEBYTECODE="1")
-    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", *files]
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", *args]
+    return subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def failing_unmutated(tree: Path, files: list[str], timeout: float) -> list[str]:
+    """Test ids that fail on the unmutated tree (tests of another commit may): left out of every
+    mutant's run, so a mutant is killed only by a test that passes without it."""
+    proc = _pytest(tree, ["-rf", *files], timeout)
+    return re.findall(r"^FAILED (\S+)", proc.stdout, flags=re.M)
+
+
+def run_tests(tree: Path, files: list[str], timeout: float, deselect=()) -> str:
+    """``killed`` / ``survived`` / ``timeout`` for the test ``files`` in ``tree``."""
     try:
-        proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, timeout=timeout)
+        proc = _pytest(tree, ["-x", *files, *[f"--deselect={t}" for t in deselect]], timeout)
     except subprocess.TimeoutExpired:
         return "timeout"
     return "survived" if proc.returncode == 0 else "killed"
@@ -240,18 +252,23 @@ def main(argv=None) -> int:
             print(f"mutation_check: mutant {m.name!r}: its text is not found once in {m.path}", file=sys.stderr)
             return 2
     tree = make_tree(args.tests_rev)
-    results = []
+    results, broken = [], {}
     try:
         for i, m in enumerate(mutants, 1):
             files = tests_for(m.path, tree / "tests")
             if args.list:
                 print(f"{m.name}  [{', '.join(files) or 'no tests'}]")
                 continue
+            key = tuple(files)
+            if files and key not in broken:
+                broken[key] = failing_unmutated(tree, files, args.timeout)
+                if broken[key]:
+                    print(f"left out (they fail without a mutant): {', '.join(broken[key])}", flush=True)
             target = tree / m.path
             original = target.read_text()
             target.write_text(m.apply(original))
             t0 = time.time()
-            outcome = run_tests(tree, files, args.timeout) if files else "survived"
+            outcome = run_tests(tree, files, args.timeout, broken.get(key, ())) if files else "survived"
             target.write_text(original)
             results.append({**asdict(m), "module": m.path, "outcome": outcome, "tests": files, "seconds": round(time.time() - t0, 1)})
             print(f"[{i}/{len(mutants)}] {outcome:8s} {m.name} ({time.time() - t0:.0f} s)", flush=True)
@@ -261,7 +278,8 @@ def main(argv=None) -> int:
         return 0
     out = ROOT / args.out
     out.mkdir(parents=True, exist_ok=True)
-    (out / "mutants.json").write_text(json.dumps({"tests_rev": args.tests_rev, "results": results}, indent=1))
+    (out / "mutants.json").write_text(json.dumps({"tests_rev": args.tests_rev, "results": results,
+                                                  "left_out": {" ".join(k): v for k, v in broken.items() if v}}, indent=1))
     print(table(results, args.tests_rev))
     return 0
 
