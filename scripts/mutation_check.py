@@ -73,8 +73,10 @@ NAMED = [
            "OFFICIAL_LEVEL_VIEWS.get(m, (m // 2, m // 4))", "(m // 2, m // 4)"),
     Mutant("dgcnn: graph built once from xyz", "mvtn_exp/models/dgcnn.py",
            "idx = knn(x.detach(), k)",
-           'idx = (edge_features.__dict__.__setitem__("idx", knn(x.detach(), k)) or edge_features.idx) '
-           'if x.shape[1] == 3 else edge_features.idx'),
+           'old = edge_features.__dict__.get("idx")  # the xyz graph of this forward, reused by later layers\n'
+           '    reuse = x.shape[1] > 3 and old is not None and tuple(old.shape[:2]) == (x.shape[0], x.shape[2])\n'
+           '    idx = old if reuse else knn(x.detach(), k)\n'
+           '    edge_features.idx = idx'),
     Mutant("dgcnn: neighbours from the first three channels", "mvtn_exp/models/dgcnn.py",
            "idx = knn(x.detach(), k)", "idx = knn(x.detach()[:, :3], k)"),
     Mutant("dgcnn: edge feature without the centre", "mvtn_exp/models/dgcnn.py",

@@ -196,8 +196,8 @@ class ViewGCN(MVCNN):
             raise ValueError(f"mvnet.k={k}: ViewGCN needs k >= 1 neighbours")
         if fps_start not in FPS_STARTS:
             raise ValueError(f"mvnet.fps_start={fps_start!r}: expected one of {', '.join(FPS_STARTS)}")
-        self.level_views = tuple(level_views) if level_views is not None else None
         super().__init__(backbone, num_classes, weights=weights, pool="max", dropout=dropout)
+        self.level_views = tuple(level_views) if level_views is not None else None
         d = self.feature_dim
         self.local = nn.ModuleList(LocalGCN(d, k) for _ in range(self.LEVELS))
         self.nonlocal_mp = nn.ModuleList(NonLocalMP(d) for _ in range(self.LEVELS - 1))
