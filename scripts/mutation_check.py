@@ -3,6 +3,7 @@
     python scripts/mutation_check.py                       # every mutant, the tests of this tree
     python scripts/mutation_check.py --tests-rev 54364e0   # the same mutants, the tests of a commit
     python scripts/mutation_check.py --only viewgcn --list
+    python scripts/mutation_check.py --auto 2 --rerun outputs/mutation/mutants.json   # survivors again
 
 Two kinds of mutant, each applied to a copy of this tree (the checkout is never touched):
 - named mutants (``NAMED``): plausible wrong implementations of a method, written by hand (the
@@ -162,7 +163,7 @@ TEST_FILES = {
     "precision": ("test_precision_ema",),
     "retrieval": ("test_retrieval", "test_eval_modes"),
     "robustness": ("test_robustness",),
-    "classification": ("test_train_e2e",),
+    "classification": ("test_train_e2e", "test_view_gradient"),
     "fixed": ("test_selectors", "test_method_parts", "test_cameras_layouts"),
     "mvtn": ("test_selectors", "test_selector_options", "test_g_capacity"),
     "config": ("test_selector_options", "test_selectors", "test_config"),
@@ -240,7 +241,12 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=600.0, help="seconds per mutant (a timeout counts as killed)")
     ap.add_argument("--list", action="store_true", help="list the mutants and their test files, run nothing")
     ap.add_argument("--out", default="outputs/mutation", help="folder for mutants.json")
+    ap.add_argument("--rerun", metavar="JSON", help="a mutants.json: run its survivors again, keep its other outcomes")
+    ap.add_argument("--compare", nargs=2, metavar=("BEFORE", "AFTER"), help="two mutants.json: per module, side by side")
     args = ap.parse_args(argv)
+    if args.compare:
+        print(side_by_side(*(json.loads(Path(p).read_text()) for p in args.compare)))
+        return 0
 
     mutants = [] if args.no_named else list(NAMED)
     rng = random.Random(args.seed)
@@ -249,6 +255,12 @@ def main(argv=None) -> int:
             cands = operator_mutants(path)
             mutants += rng.sample(cands, min(args.auto, len(cands)))
     mutants = [m for m in mutants if args.only in m.name]
+    kept = []
+    if args.rerun:
+        previous = json.loads(Path(args.rerun).read_text())["results"]
+        again = {r["name"] for r in previous if r["outcome"] == "survived"}
+        kept = [r for r in previous if r["name"] not in again]
+        mutants = [m for m in mutants if m.name in again]
     for m in mutants:
         if not m.line and (ROOT / m.path).read_text().count(m.old) != 1:
             print(f"mutation_check: mutant {m.name!r}: its text is not found once in {m.path}", file=sys.stderr)
@@ -280,6 +292,7 @@ def main(argv=None) -> int:
         return 0
     out = ROOT / args.out
     out.mkdir(parents=True, exist_ok=True)
+    results = kept + results
     (out / "mutants.json").write_text(json.dumps({"tests_rev": args.tests_rev, "results": results,
                                                   "left_out": {" ".join(k): v for k, v in broken.items() if v}}, indent=1))
     print(table(results, args.tests_rev))
@@ -298,6 +311,21 @@ def table(results: list[dict], tests_rev: str | None) -> str:
     head = f"Tests: {'commit ' + tests_rev if tests_rev else 'this tree'}.\n\n"
     surv = [f"- survived: {r['name']}" for r in results if r["outcome"] == "survived"]
     return head + "\n".join(rows) + ("\n\n" + "\n".join(surv) if surv else "")
+
+
+def side_by_side(before: dict, after: dict) -> str:
+    """Markdown: per module, the mutants and how many each run killed (mutants matched by name)."""
+    b = {r["name"]: r["outcome"] != "survived" for r in before["results"]}
+    rows = [f"| module | mutants | killed, tests of {before.get('tests_rev') or 'this tree'} | killed, tests of "
+            f"{after.get('tests_rev') or 'this tree'} |", "|---|---|---|---|"]
+    tot = [0, 0, 0]
+    for mod in sorted({r["module"] for r in after["results"]}):
+        rs = [r for r in after["results"] if r["module"] == mod and r["name"] in b]
+        kb, ka = sum(b[r["name"]] for r in rs), sum(r["outcome"] != "survived" for r in rs)
+        rows.append(f"| {mod} | {len(rs)} | {kb} ({kb / max(1, len(rs)):.0%}) | {ka} ({ka / max(1, len(rs)):.0%}) |")
+        tot = [tot[0] + len(rs), tot[1] + kb, tot[2] + ka]
+    rows.append(f"| all | {tot[0]} | {tot[1]} ({tot[1] / max(1, tot[0]):.0%}) | {tot[2]} ({tot[2] / max(1, tot[0]):.0%}) |")
+    return "\n".join(rows)
 
 
 if __name__ == "__main__":

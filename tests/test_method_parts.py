@@ -3,6 +3,8 @@ plausible wrong implementation fails (issue 30: ViewGCN's graph, passes, samplin
 DGCNN's dynamic graph; ViT's position embedding; input scaling and weights without classifier)."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from torch import nn
@@ -253,3 +255,82 @@ def test_the_config_build_path_applies_the_scaling():
     on.eval(), off.eval()
     std = torch.tensor(IMAGENET_STD).view(1, 1, 3, 1, 1)
     torch.testing.assert_close(on(x)[0], off((x - torch.tensor(IMAGENET_MEAN).view(1, 1, 3, 1, 1)) / std)[0])
+
+
+# --------------------------------------------------------------------------- bounds of the point encoders
+
+def test_point_encoders_take_their_smallest_valid_inputs():
+    """DGCNN takes exactly k points (each point its own nearest neighbour counts) and refuses
+    k - 1; PointNet and DGCNN give one output feature when asked for one."""
+    from mvtn_exp.models.point_encoders import build_point_encoder
+
+    net = dgcnn_mod.DGCNN(out_features=1, k=5, emb_dims=8).eval()
+    assert net(torch.randn(2, 5, 3)).shape == (2, 1)
+    with pytest.raises(ValueError, match="4 points per shape, fewer than point_encoder.k=5"):
+        net(torch.randn(2, 4, 3))
+    pn = build_point_encoder("pointnet", out_features=1).eval()
+    assert pn(torch.randn(2, 7, 3)).shape == (2, 1)
+    with pytest.raises(ValueError, match="out_features must be an integer >= 1"):
+        build_point_encoder("pointnet", out_features=0)
+
+
+# --------------------------------------------------------------------------- transformer blocks against their definition
+
+def _attention(x, w_in, b_in, w_out, b_out, heads):
+    """Multi-head self-attention written from its definition: softmax(q k^T / sqrt(d)) v per head."""
+    B, T, D = x.shape
+    q, k, v = (x @ w_in.T + b_in).split(D, dim=-1)
+    split = lambda t: t.view(B, T, heads, D // heads).transpose(1, 2)  # noqa: E731
+    q, k, v = split(q), split(k), split(v)
+    a = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(D // heads), dim=-1) @ v
+    return a.transpose(1, 2).reshape(B, T, D) @ w_out.T + b_out
+
+
+def _pre_norm_block(x, norm1, attn, norm2, mlp):
+    x = x + attn(norm1(x))
+    return x + mlp(norm2(x))
+
+
+def test_view_transformer_block_is_a_pre_norm_block():
+    from mvtn_exp.models.view_transformer import ViewBlock
+
+    torch.manual_seed(0)
+    blk = ViewBlock(16, heads=4).eval()
+    x = torch.randn(3, 5, 16)
+    a = blk.attn
+    want = _pre_norm_block(x, blk.norm1, lambda h: _attention(h, a.in_proj_weight, a.in_proj_bias, a.out_proj.weight,
+                                                             a.out_proj.bias, 4), blk.norm2, blk.mlp)
+    torch.testing.assert_close(blk(x), want, rtol=1e-5, atol=1e-5)
+
+
+def test_vit_is_timms_forward():
+    """Class token first, position embedding added, pre-norm blocks, final norm, class token out;
+    the resampled embedding is bicubic with align_corners=False (timm's), exact on a linear ramp."""
+    torch.manual_seed(0)
+    net = build_backbone("vit_tiny", 10).eval()
+    x = torch.rand(2, 3, 32, 48)
+    with torch.no_grad():
+        tok = torch.cat([net.cls_token.expand(2, -1, -1), net.patch_embed(x)], 1) + net.position(2, 3)
+        for b in net.blocks:
+            a = b.attn
+            tok = _pre_norm_block(tok, b.norm1, lambda h, a=a: _attention(h, a.qkv.weight, a.qkv.bias, a.proj.weight,
+                                                                         a.proj.bias, 3), b.norm2, b.mlp)
+        torch.testing.assert_close(net.features(x), net.norm(tok)[:, 0], rtol=1e-4, atol=1e-4)
+        net.pos_embed.zero_()
+        net.pos_embed[0, 1:].view(14, 14, -1)[:, :, 0] = torch.arange(14.0)[:, None]
+        rows = net.position(7, 7)[0, 1:].view(7, 7, -1)[:, 0, 0]
+    # output row i samples input row 2 i + 0.5 (align_corners=False); rows 1-5 have all four taps inside
+    torch.testing.assert_close(rows[1:6], torch.tensor([2.5, 4.5, 6.5, 8.5, 10.5]), rtol=0, atol=1e-4)
+
+
+def test_viewgcn_level_views_up_to_m_are_taken_and_more_refused(tmp_path):
+    from mvtn_exp.engine.trainer import as_config
+
+    from conftest import tiny_config
+
+    ok = as_config(tiny_config(str(tmp_path), views=4, **{"mvnet.name": "viewgcn", "mvnet.level_views": [4, 2]}))
+    assert ok.mvnet.level_views == [4, 2]
+    with pytest.raises(ValueError, match=r"mvnet.level_views=\[5, 2\]: level 2 cannot keep more than views=4"):
+        as_config(tiny_config(str(tmp_path), views=4, **{"mvnet.name": "viewgcn", "mvnet.level_views": [5, 2]}))
+    with pytest.raises(ValueError, match=r"mvnet.level_views=\[2, 3\]"):
+        as_config(tiny_config(str(tmp_path), views=4, **{"mvnet.name": "viewgcn", "mvnet.level_views": [2, 3]}))

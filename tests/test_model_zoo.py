@@ -469,3 +469,11 @@ def test_viewgcn_stages_single_views_first_then_the_graph(cache, gcn_run, tmp_pa
             assert torch.equal(after[key], value), key
     for key in ("mvnet.single_view_head.weight", "mvnet.backbone.body.0.weight"):
         assert not torch.equal(after[key], init[key]), key
+
+
+def test_margin_of_a_single_class_is_zero():
+    """The label-free margin needs the two highest logits; with one class there is no gap."""
+    from mvtn_exp.selectors.optimized import objective_value
+
+    logits = torch.tensor([[2.0], [-1.0]])
+    assert torch.equal(objective_value("margin", logits, None, torch.zeros(2)), torch.zeros(2))

@@ -119,3 +119,28 @@ def test_a_toy_selector_defined_here_registers_and_trains_one_step(tmp_path):
         assert run["history"][0]["grad_norm_selector"] > 0
     finally:
         REGISTRY.pop("toy_test_selector", None)
+
+
+def test_warmup_views_are_the_ones_asked_for(tmp_path):
+    """``selector.warmup_views``: random gives new directions per shape, spherical the layout for
+    every shape, u0 G's initial views."""
+    from types import SimpleNamespace
+
+    from mvtn_exp.render import layouts
+    from mvtn_exp.selectors import MVTNSelector
+    from mvtn_exp.selectors.training import LearnedTraining
+
+    batch = {"points": torch.zeros(4, 10, 3)}
+    model = SimpleNamespace(device=torch.device("cpu"), selector=MVTNSelector(3, "spherical"))
+    got = {}
+    for kind in ("random", "spherical", "u0"):
+        cfg = as_config(tiny(str(tmp_path), views=3, **{"selector.name": "mvtn_spherical", "selector.warmup_epochs": 1,
+                                                        "selector.warmup_views": kind}))
+        torch.manual_seed(0)
+        got[kind] = LearnedTraining(cfg).warmup_views(model, batch)
+    lay = layouts.spherical(3, 4, 2.2)
+    assert torch.allclose(got["spherical"][0], lay[0]) and torch.allclose(got["spherical"][1], lay[1])
+    assert not torch.equal(got["random"][0][0], got["random"][0][1])  # per shape
+    assert not torch.allclose(got["random"][0], lay[0])
+    u0 = model.selector.initial_views(4)
+    assert torch.equal(got["u0"][0], u0[0]) and torch.equal(got["u0"][1], u0[1])

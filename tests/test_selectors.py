@@ -471,3 +471,22 @@ def test_selector_beta1_is_g_groups_own_and_changes_only_gs_step():
     for a, b in zip(steps[0.9][:n_c], steps[0.99][:n_c]):
         assert torch.equal(a, b)  # C's steps are untouched
     assert any(not torch.allclose(a, b) for a, b in zip(steps[0.9][n_c:], steps[0.99][n_c:]))
+
+
+def test_noisy_views_have_the_stated_spread():
+    """Training noise of std 18 degrees in azimuth and 9 in elevation around the layout."""
+    sel = build_selector("noisy", 12).train()
+    base = build_selector("circular", 12)(clouds(B=400))
+    torch.manual_seed(0)
+    azim, elev, _ = sel(clouds(B=400))
+    assert abs(float((azim - base[0]).std()) - 18.0) < 0.5
+    assert abs(float((elev - base[1]).std()) - 9.0) < 0.25
+    sel.eval()
+    assert torch.equal(sel(clouds(B=2))[0], base[0][:2])  # the plain layout at evaluation
+
+
+def test_mvtn_takes_one_shape_feature():
+    sel = MVTNSelector(3, "spherical", features=1).eval()
+    assert sel.features == 1 and sel(clouds(B=2))[0].shape == (2, 3)
+    with pytest.raises(ValueError, match="features must be an integer >= 1"):
+        MVTNSelector(3, "spherical", features=0)
