@@ -258,7 +258,7 @@ def main(argv=None) -> int:
     kept = []
     if args.rerun:
         previous = json.loads(Path(args.rerun).read_text())["results"]
-        again = {r["name"] for r in previous if r["outcome"] == "survived"}
+        again = {r["name"] for r in previous if r["outcome"] == "survived"} & {m.name for m in mutants}
         kept = [r for r in previous if r["name"] not in again]
         mutants = [m for m in mutants if m.name in again]
     for m in mutants:
