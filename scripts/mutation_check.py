@@ -175,7 +175,7 @@ TEST_FILES = {
     "probes": ("test_view_gradient", "test_selectors"),
     "poi": ("test_selectors", "test_selector_options", "test_hypotheses"),
     "optimized": ("test_model_zoo",),
-    "training": ("test_selector_options", "test_view_gradient"),
+    "training": ("test_selector_options", "test_view_gradient", "test_precise_bn"),
 }
 
 

@@ -334,3 +334,13 @@ def test_viewgcn_level_views_up_to_m_are_taken_and_more_refused(tmp_path):
         as_config(tiny_config(str(tmp_path), views=4, **{"mvnet.name": "viewgcn", "mvnet.level_views": [5, 2]}))
     with pytest.raises(ValueError, match=r"mvnet.level_views=\[2, 3\]"):
         as_config(tiny_config(str(tmp_path), views=4, **{"mvnet.name": "viewgcn", "mvnet.level_views": [2, 3]}))
+
+
+def test_viewgcn_takes_two_views_and_refuses_one(tmp_path):
+    from mvtn_exp.engine.trainer import as_config
+
+    from conftest import tiny_config
+
+    assert as_config(tiny_config(str(tmp_path), views=2, **{"mvnet.name": "viewgcn"})).views == 2
+    with pytest.raises(ValueError, match="views=1: mvnet=viewgcn builds a graph over the views and needs views >= 2"):
+        as_config(tiny_config(str(tmp_path), views=1, **{"mvnet.name": "viewgcn"}))
