@@ -231,7 +231,7 @@ def run_tests(tree: Path, files: list[str], timeout: float, deselect=()) -> str:
     return "survived" if proc.returncode == 0 else "killed"
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tests-rev", help="run the test files of this git commit (the 'before' of a change)")
     ap.add_argument("--auto", type=int, default=0, help="operator mutants drawn per module (seeded)")
@@ -243,6 +243,11 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="outputs/mutation", help="folder for mutants.json")
     ap.add_argument("--rerun", metavar="JSON", help="a mutants.json: run its survivors again, keep its other outcomes")
     ap.add_argument("--compare", nargs=2, metavar=("BEFORE", "AFTER"), help="two mutants.json: per module, side by side")
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = build_parser()
     args = ap.parse_args(argv)
     if args.compare:
         print(side_by_side(*(json.loads(Path(p).read_text()) for p in args.compare)))

@@ -32,6 +32,7 @@ import importlib.util
 import os
 import re
 import shlex
+import sys
 from pathlib import Path
 
 import pytest
@@ -273,6 +274,16 @@ def check_python(argv, capsys):
         args = [a for i, a in enumerate(argv[1:]) if not (i and argv[i].startswith("--") and "=" not in argv[i])]
         overrides = [a for a in args if "=" in a and not a.startswith("-")]  # --flag VALUE: the flag's value
         return check_train(overrides, capsys) if overrides else None
+    if argv[:1] == ["scripts/mutation_check.py"]:  # its own parser
+        spec = importlib.util.spec_from_file_location("mutation_check", ROOT / argv[0])
+        module = importlib.util.module_from_spec(spec)
+        sys.modules.setdefault("mutation_check", module)  # its dataclasses look their module up
+        spec.loader.exec_module(module)
+        try:
+            module.build_parser().parse_args(argv[1:])
+        except SystemExit:
+            return capsys.readouterr().err.strip() or "mutation_check: bad arguments"
+        return None
     if argv[:1] != ["-m"] or len(argv) < 2:
         return f"python {' '.join(argv)}: only `python -m MODULE` and `python scripts/studies/NAME.py` are checked; list other forms in ALLOWED"
     module = argv[1]
