@@ -20,7 +20,7 @@ from pathlib import Path
 
 import yaml
 
-from .compare import CompareError, Run, _matches
+from .compare import CompareError, Run, _matches, mean_sd
 
 ANY = "<set>"  # a ``where`` value: the key holds any value but null
 
@@ -120,11 +120,6 @@ def counts_for(run: Run, metric: str) -> bool:
     return not metric.startswith("test_") and run.metrics.get("split", "test") == "test"
 
 
-def _mean_sd(x: list[float]) -> tuple[float, float]:
-    m = sum(x) / len(x)
-    return m, (math.sqrt(sum((v - m) ** 2 for v in x) / (len(x) - 1)) if len(x) > 1 else float("nan"))
-
-
 def report(tables: list[Table], runs: list[Run]) -> dict:
     """Every row with the finished runs that match it: ``{"tables": [{..., "rows": [{label, paper,
     n, seeds, mean, sd, diff, runs}]}], "unmatched": [run paths no row took]}`` (values in percent)."""
@@ -147,7 +142,7 @@ def report(tables: list[Table], runs: list[Run]) -> dict:
                 seeds.append(run.seed)
                 paths.append(str(run.path))
                 used.add(run.path)
-            mean, sd = _mean_sd(vals) if vals else (None, None)
+            mean, sd = mean_sd(vals) if vals else (None, None)
             rows.append({"label": row.label, "command": row.command, "metric": row.metric, "paper": row.paper,
                          "source": row.source, "n": len(vals), "seeds": seeds, "mean": mean, "sd": sd,
                          "diff": None if mean is None or row.paper is None else mean - row.paper, "runs": paths})
