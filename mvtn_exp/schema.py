@@ -205,6 +205,13 @@ def check_precision(precision: str, device: str) -> None:
                          "precision=bf16 or fp32")
 
 
+# What a training run can return to an optimising sweeper (``TrainConfig.objectives``): validation
+# accuracy and the measured cost of ``engine/cost.py``; never a test metric.
+OBJECTIVES = ("best_val_acc", "cost.infer_ms_per_shape", "cost.train_seconds_per_shape", "cost.train_peak_mib",
+              "cost.infer_peak_mib", "cost.render_ms_per_shape", "cost.params_selector", "cost.params_mvnet",
+              "cost.flops_selector_per_shape", "cost.flops_mvnet_per_shape")
+
+
 @dataclass
 class TrainConfig:
     """``mvtn-train``. Top-level keys everyone reaches for; the rest in the groups.
@@ -218,6 +225,9 @@ class TrainConfig:
     (one holding a ``last.pt``; else refused: ``engine/run_dir.py``); ``sync_bn``: with several
     processes (torchrun), BatchNorm statistics over the whole global batch (``models/sync_bn.py``;
     false: each process over its own share, as plain DDP); no effect in one process.
+    ``objectives``: what the run returns to a sweeper that optimises (``hydra/sweeper=optuna``, e.g.
+    ``+experiment=tradeoff_search``), in order: ``best_val_acc`` or ``cost.<field>`` of its
+    metrics.json (``engine/cost.py``); test metrics are refused (a search chooses on validation).
     """
 
     views: int = 4
@@ -231,6 +241,7 @@ class TrainConfig:
     precision: str = "fp32"
     overwrite: bool = False
     sync_bn: bool = True
+    objectives: list[str] = field(default_factory=list)
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     # renderer.image_size follows the top-level image_size (an interpolation, resolved at compose time);
     # training defaults to soft smooth rendering (conf/renderer/soft.yaml: camera gradients for G)
@@ -254,6 +265,11 @@ class TrainConfig:
         if self.threads is not None:
             at_least("threads", self.threads, 1)
         check_precision(self.precision, self.device)
+        for name in self.objectives:
+            if str(name).startswith("test_"):
+                raise ValueError(f"objectives: {name!r} reads the test split; a search chooses on validation "
+                                 f"(one of {', '.join(OBJECTIVES)})")
+            one_of("objectives", name, OBJECTIVES)
         for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
                      self.optim, self.augment, self.logger):
             part.validate()

@@ -89,4 +89,4 @@ def test_cli_prints_the_table_and_the_path_last(tmp_path):
     out = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.tradeoff", str(tmp_path)], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     lines = out.stdout.strip().splitlines()
-    assert lines[-1] == str(tmp_path / "tradeoff.md") and "| views | image_size | seeds |" in out.stdout
+    assert lines[-1] == str(tmp_path / "tradeoff.md") and "| views | image_size | runs |" in out.stdout

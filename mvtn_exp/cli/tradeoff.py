@@ -1,9 +1,13 @@
 """``mvtn-tradeoff DIR``: the speed/accuracy trade of a sweep folder (``engine/tradeoff.py``).
 
 Writes ``tradeoff.csv`` (per setting), ``tradeoff_jobs.csv`` (per job), ``tradeoff.md`` and
-``pareto.png`` into DIR, prints the Markdown and, last, the path of ``tradeoff.md``. A folder with
-no finished job, with jobs from different datasets or with a job whose metrics lack the cost
-fields: one line on stderr naming it, exit code 2. Failed jobs are listed, not dropped.
+``pareto.png`` into DIR, prints the Markdown and, last, the path of ``tradeoff.md``.
+``--metric best_val_acc`` draws the front on validation accuracy (a search or grid that chooses
+on validation); ``--against OTHER ...`` also prints the hypervolume of DIR's front and of each
+OTHER's with one reference point (a search against a grid) and writes it to DIR/fronts.md. A
+folder with no finished job, with jobs from different datasets or with a job whose metrics lack
+the cost fields or the metric: one line on stderr naming it, exit code 2. Failed jobs are
+listed, not dropped.
 """
 from __future__ import annotations
 
@@ -11,20 +15,27 @@ import argparse
 import sys
 
 from ..engine.provenance import package_version
-from ..engine.tradeoff import TradeoffError, write_tradeoff
+from ..engine.tradeoff import METRICS, TradeoffError, compare_fronts, write_tradeoff
 
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(prog="mvtn-tradeoff", description=__doc__.splitlines()[0].split(": ", 1)[1])
     p.add_argument("sweep_dir", metavar="DIR", help="a sweep folder written by mvtn-train -m")
+    p.add_argument("--metric", default="test_acc", choices=METRICS, help="the accuracy of the front (default test_acc)")
+    p.add_argument("--against", nargs="+", default=[], metavar="OTHER", help="folders whose fronts to set beside DIR's")
     p.add_argument("--version", action="version", version=f"mvtn-tradeoff (mvtn-exp {package_version()})")
     args = p.parse_args(argv)
     try:
-        out = write_tradeoff(args.sweep_dir)
+        out = write_tradeoff(args.sweep_dir, args.metric)
+        fronts = compare_fronts([args.sweep_dir, *args.against], args.metric) if args.against else None
+        if fronts:
+            (out["md"].parent / "fronts.md").write_text(fronts["md"])
     except (TradeoffError, OSError) as e:
         print(f"mvtn-tradeoff: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     print(out["md"].read_text())
+    if fronts:
+        print("## Fronts\n\n" + fronts["md"])
     if out["failed"]:
         print(f"mvtn-tradeoff: {len(out['failed'])} failed job(s) left out: " + "; ".join(out["failed"]), file=sys.stderr)
     print(out["md"])

@@ -6,6 +6,7 @@ Examples: ``mvtn-train``, ``mvtn-train +experiment=synthetic_circular views=1``,
 """
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -152,8 +153,26 @@ def keep_finished_job(cfg, run_dir: Path, multirun: bool) -> bool:
     return False
 
 
+def objective_values(run_dir: Path, names) -> list[float] | None:
+    """The run's ``objectives`` (``TrainConfig``) read from its metrics.json, for an optimising
+    sweeper; None when none are asked for or the run has no result (the sweeper records a failed trial)."""
+    path = run_dir / "metrics.json"
+    if not names or not path.is_file():
+        return None
+    metrics = json.loads(path.read_text())
+    out = []
+    for name in names:
+        value = metrics
+        for part in str(name).split("."):
+            value = value.get(part) if isinstance(value, dict) else None
+        if value is None:
+            return None
+        out.append(float(value))
+    return out
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
-def _app(cfg) -> None:
+def _app(cfg) -> list[float] | None:
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -168,7 +187,7 @@ def _app(cfg) -> None:
         sys.exit(2)
     try:
         if keep_finished_job(cfg, run_dir, hc.mode == RunMode.MULTIRUN):
-            return
+            return objective_values(run_dir, cfg.objectives)
         if cfg.ckpt_path:  # (a finished run's metrics.json is kept aside once the resume is accepted)
             tcfg = resume_config(cfg, list(hc.overrides.task))
         else:
@@ -220,6 +239,7 @@ def _app(cfg) -> None:
         sys.exit(EXIT_CODES.get(type(exc), 1 if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError) else 2))
     if distributed.from_env().main:
         print(run_dir / "metrics.json")
+    return objective_values(run_dir, tcfg.objectives)
 
 
 def resume_in_place(argv: list[str]) -> list[str]:

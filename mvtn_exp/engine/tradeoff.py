@@ -14,7 +14,12 @@
 
 The effect of a key: over every pair of settings that differ only in that key, at neighbouring
 values (numeric order when the values are numbers, first-seen order otherwise), the mean change
-of test accuracy (points) and the mean factor of inference and training time per step.
+of accuracy (points) and the mean factor of inference and training time per step.
+
+``metric``: the accuracy the front is drawn on, ``test_acc`` (default) or ``best_val_acc`` (a
+search or grid that chooses on validation; the table then shows each setting's test accuracy
+beside it, read once per run). ``compare_fronts`` sets the inference front of two folders (a
+search against a grid) side by side by their hypervolume (``hypervolume``).
 """
 from __future__ import annotations
 
@@ -29,6 +34,7 @@ COST_FIELDS = ("infer_ms_per_shape", "train_seconds_per_shape", "train_peak_mib"
                "params_selector", "params_mvnet", "flops_selector_per_shape", "flops_mvnet_per_shape",
                "render_ms_per_shape", "render_pixels_per_shape")
 NOT_SWEPT = ("seed",)
+METRICS = ("test_acc", "best_val_acc")
 
 
 class TradeoffError(ValueError):
@@ -50,7 +56,7 @@ def job_rows(sweep_dir) -> list[dict]:
         if missing:
             raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no cost fields {missing[:3]}"
                                 f"{'...' if len(missing) > 3 else ''} (written by runs since 2026-12-02; re-run the job)")
-        r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"])
+        r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"], best_val_acc=m.get("best_val_acc"))
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
         raise TradeoffError(f"{sweep_dir}: no finished job (a job folder with metrics.json) among {len(rows)}")
@@ -69,8 +75,15 @@ def _number(v: str):
         return None
 
 
-def settings(rows: list[dict]) -> tuple[list[dict], list[str]]:
-    """Rows per setting (finished jobs only) and the swept keys (overridden keys whose value varies)."""
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    mean = sum(values) / len(values)
+    return mean, (math.sqrt(sum((a - mean) ** 2 for a in values) / (len(values) - 1)) if len(values) > 1 else 0.0)
+
+
+def settings(rows: list[dict], metric: str = "test_acc") -> tuple[list[dict], list[str]]:
+    """Rows per setting (finished jobs only) and the swept keys (overridden keys whose value varies).
+    ``acc`` / ``acc_std``: ``metric``'s mean and sample std over the setting's runs (the front's axis);
+    ``test_acc`` / ``test_acc_std`` always."""
     groups: dict[str, list[dict]] = {}
     for r in rows:
         if r.get("status") == "ok":
@@ -81,17 +94,16 @@ def settings(rows: list[dict]) -> tuple[list[dict], list[str]]:
     swept = [k for k in keys if len({v.get(k, "") for v in values.values()}) > 1] or keys
     out = []
     for s, members in groups.items():
-        accs = [float(r["test_acc"]) for r in members]
-        mean = sum(accs) / len(accs)
-        std = math.sqrt(sum((a - mean) ** 2 for a in accs) / (len(accs) - 1)) if len(accs) > 1 else 0.0
-        row = {"setting": s, **{k: values[s].get(k, "") for k in swept}, "seeds": len(accs),
-               "test_acc": mean, "test_acc_std": std}
+        mean, std = _mean_std([float(r["test_acc"]) for r in members])
+        acc, acc_std = _mean_std([float(r[metric]) for r in members])
+        row = {"setting": s, **{k: values[s].get(k, "") for k in swept}, "seeds": len(members),
+               "test_acc": mean, "test_acc_std": std, "acc": acc, "acc_std": acc_std}
         row.update({k: sum(float(r[k]) for r in members) / len(members) for k in COST_FIELDS})
         out.append(row)
     for time_key, flag in (("infer_ms_per_shape", "pareto_infer"), ("train_seconds_per_shape", "pareto_train")):
         for r in out:
-            r[flag] = not any(o is not r and o["test_acc"] >= r["test_acc"] and o[time_key] <= r[time_key]
-                              and (o["test_acc"] > r["test_acc"] or o[time_key] < r[time_key]) for o in out)
+            r[flag] = not any(o is not r and o["acc"] >= r["acc"] and o[time_key] <= r[time_key]
+                              and (o["acc"] > r["acc"] or o[time_key] < r[time_key]) for o in out)
     return out, swept
 
 
@@ -111,7 +123,7 @@ def key_effects(rows: list[dict], swept: list[str]) -> list[dict]:
             n = len(pairs)
             effects.append({
                 "key": key, "step": f"{lo} -> {hi}", "pairs": n,
-                "acc_points": 100 * sum(b["test_acc"] - a["test_acc"] for a, b in pairs) / n,
+                "acc_points": 100 * sum(b["acc"] - a["acc"] for a, b in pairs) / n,
                 "infer_factor": math.exp(sum(math.log(b["infer_ms_per_shape"] / a["infer_ms_per_shape"])
                                              for a, b in pairs) / n),
                 "train_factor": math.exp(sum(math.log(b["train_seconds_per_shape"] / a["train_seconds_per_shape"])
@@ -123,7 +135,7 @@ def _label(row: dict, swept: list[str]) -> str:
     return ",".join(f"{k.split('.')[-1]}={row[k]}" for k in swept) or row["setting"]
 
 
-def pareto_png(rows: list[dict], swept: list[str], path) -> Path:
+def pareto_png(rows: list[dict], swept: list[str], path, metric: str = "test_acc") -> Path:
     from ..viz.plots import pyplot, save_figure
 
     plt = pyplot()
@@ -133,19 +145,19 @@ def pareto_png(rows: list[dict], swept: list[str], path) -> Path:
         for front in (False, True):
             pts = [r for r in rows if r[flag] == front]
             if pts:
-                ax.errorbar([r[key] for r in pts], [r["test_acc"] for r in pts], yerr=[r["test_acc_std"] for r in pts],
+                ax.errorbar([r[key] for r in pts], [r["acc"] for r in pts], yerr=[r["acc_std"] for r in pts],
                             fmt="o" if front else ".", color="C3" if front else "0.55", capsize=2,
                             label="Pareto-optimal" if front else "other settings")
         line = sorted((r for r in rows if r[flag]), key=lambda r: r[key])
-        ax.plot([r[key] for r in line], [r["test_acc"] for r in line], "-", color="C3", alpha=0.6)
+        ax.plot([r[key] for r in line], [r["acc"] for r in line], "-", color="C3", alpha=0.6)
         for r in line:
-            ax.annotate(_label(r, swept), (r[key], r["test_acc"]), fontsize=7, xytext=(3, 3),
+            ax.annotate(_label(r, swept), (r[key], r["acc"]), fontsize=7, xytext=(3, 3),
                         textcoords="offset points")
         ax.set_xscale("log")
         ax.xaxis.set_minor_formatter(plt.NullFormatter())  # minor labels overlap on short ranges
         ax.margins(x=0.25)  # room for the labels of the last points
         ax.set_xlabel(xlabel)
-        ax.set_ylabel("test accuracy (mean, std over seeds)")
+        ax.set_ylabel(f"{'validation' if metric == 'best_val_acc' else 'test'} accuracy (mean, std over runs)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="best")
     return save_figure(fig, path)
@@ -158,39 +170,103 @@ def _csv(path: Path, rows: list[dict], fields: list[str]) -> None:
         w.writerows(rows)
 
 
-def write_tradeoff(sweep_dir) -> dict:
+def _metric_rows(sweep_dir: Path, metric: str) -> list[dict]:
+    if metric not in METRICS:
+        raise TradeoffError(f"--metric {metric}: expected one of {', '.join(METRICS)}")
+    rows = job_rows(sweep_dir)
+    for r in rows:
+        if r.get("status") == "ok" and r.get(metric) is None:
+            raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no {metric}")
+    return rows
+
+
+def write_tradeoff(sweep_dir, metric: str = "test_acc") -> dict:
     """Write the four files (module docstring) into ``sweep_dir``; returns their paths, the setting
     rows, the key effects and the failed jobs. Raises ``TradeoffError`` for a folder it cannot read."""
     sweep_dir = Path(sweep_dir)
-    rows = job_rows(sweep_dir)
-    per_setting, swept = settings(rows)
+    rows = _metric_rows(sweep_dir, metric)
+    per_setting, swept = settings(rows, metric)
     effects = key_effects(per_setting, swept)
     failed = failed_jobs(sweep_dir, rows)
+    val = metric == "best_val_acc"
     jobs = [{**_override_values(r["overrides"]), **r} for r in rows]
-    _csv(sweep_dir / "tradeoff_jobs.csv", jobs, ["job", *swept, "seed", "status", "test_acc", *COST_FIELDS])
-    _csv(sweep_dir / "tradeoff.csv", per_setting,
-         [*swept, "seeds", "test_acc", "test_acc_std", *COST_FIELDS, "pareto_infer", "pareto_train"])
+    _csv(sweep_dir / "tradeoff_jobs.csv", jobs, ["job", *swept, "seed", "status", "best_val_acc", "test_acc", *COST_FIELDS])
+    _csv(sweep_dir / "tradeoff.csv", per_setting, [*swept, "seeds", *(("acc", "acc_std") if val else ()), "test_acc",
+                                                   "test_acc_std", *COST_FIELDS, "pareto_infer", "pareto_train"])
+    head = "val acc | test acc" if val else "test acc"
     lines = ["# Speed/accuracy trade", "", f"{len(rows)} jobs in `{sweep_dir}`, {len(per_setting)} settings, "
-             f"dataset `{next(r['dataset'] for r in rows if r.get('status') == 'ok')}`.", "",
+             f"dataset `{next(r['dataset'] for r in rows if r.get('status') == 'ok')}`; the front on "
+             f"{'validation accuracy (test accuracy beside it, read once per run)' if val else 'test accuracy'}.", "",
              "P: Pareto-optimal (inference / training time): no setting is at least as accurate and as fast.", "",
-             "| " + " | ".join(swept) + " | seeds | test acc | infer ms/shape | train s/shape | train / infer peak MiB "
+             "| " + " | ".join(swept) + f" | runs | {head} | infer ms/shape | train s/shape | train / infer peak MiB "
              "| params G / C | GFLOPs G / C per shape | render ms/shape | P |",
-             "|" + "---|" * (len(swept) + 9)]
+             "|" + "---|" * (len(swept) + 9 + val)]
     for r in sorted(per_setting, key=lambda r: r["infer_ms_per_shape"]):
         p = ("I" if r["pareto_infer"] else "-") + ("T" if r["pareto_train"] else "-")
-        lines.append("| " + " | ".join(str(r[k]) for k in swept) + f" | {r['seeds']} | {r['test_acc']:.3f} ± "
-                     f"{r['test_acc_std']:.3f} | {r['infer_ms_per_shape']:.2f} | {r['train_seconds_per_shape']:.3f} | "
+        acc = (f"{r['acc']:.3f} ± {r['acc_std']:.3f} | " if val else "") + f"{r['test_acc']:.3f} ± {r['test_acc_std']:.3f}"
+        lines.append("| " + " | ".join(str(r[k]) for k in swept) + f" | {r['seeds']} | {acc} | "
+                     f"{r['infer_ms_per_shape']:.2f} | {r['train_seconds_per_shape']:.3f} | "
                      f"{r['train_peak_mib']:.0f} / {r['infer_peak_mib']:.0f} | {r['params_selector']:.0f} / "
                      f"{r['params_mvnet']:.0f} | {r['flops_selector_per_shape'] / 1e9:.3g} / "
                      f"{r['flops_mvnet_per_shape'] / 1e9:.3g} | {r['render_ms_per_shape']:.1f} | {p} |")
     lines += ["", "## Which keys matter (mean over settings that differ only in the key)", "",
-              "| key | step | pairs | test acc change (points) | inference time x | training time x |", "|---|---|---|---|---|---|"]
+              f"| key | step | pairs | {'val' if val else 'test'} acc change (points) | inference time x | training time x |",
+              "|---|---|---|---|---|---|"]
     lines += [f"| {e['key']} | {e['step']} | {e['pairs']} | {e['acc_points']:+.1f} | {e['infer_factor']:.2f} | "
               f"{e['train_factor']:.2f} |" for e in effects]
     if failed:
         lines += ["", f"## Failed jobs ({len(failed)}, not in the tables)", ""] + [f"- {f}" for f in failed]
     md = sweep_dir / "tradeoff.md"
     md.write_text("\n".join(lines) + "\n")
-    png = pareto_png(per_setting, swept, sweep_dir / "pareto.png")
+    png = pareto_png(per_setting, swept, sweep_dir / "pareto.png", metric)
     return {"csv": sweep_dir / "tradeoff.csv", "jobs_csv": sweep_dir / "tradeoff_jobs.csv", "md": md, "png": png,
             "settings": per_setting, "effects": effects, "failed": failed}
+
+
+def hypervolume(points: list[tuple[float, float]], ref: tuple[float, float]) -> float:
+    """The area dominated by ``points`` (accuracy up, time down) and bounded by ``ref`` = (accuracy,
+    time), in accuracy points x decades of time (time on a log10 axis, as the trade is read).
+    Points no better than ``ref`` in either objective add nothing."""
+    ref_acc, ref_t = ref
+    pts = sorted((t, a) for a, t in points if a > ref_acc and 0 < t < ref_t)
+    area, best = 0.0, ref_acc
+    for i, (t, a) in enumerate(pts):
+        best = max(best, a)
+        right = pts[i + 1][0] if i + 1 < len(pts) else ref_t
+        area += 100 * (best - ref_acc) * (math.log10(right) - math.log10(t))
+    return area
+
+
+def _elapsed_s(sweep_dir: Path, rows: list[dict]) -> float:
+    """From the first job's start (its ``.hydra/config.yaml``) to the last result (``metrics.json``)."""
+    starts = [(sweep_dir / r["job"] / ".hydra" / "config.yaml").stat().st_mtime for r in rows
+              if (sweep_dir / r["job"] / ".hydra" / "config.yaml").is_file()]
+    ends = [(sweep_dir / r["job"] / "metrics.json").stat().st_mtime for r in rows if r.get("status") == "ok"]
+    return max(ends) - min(starts) if starts and ends else float("nan")
+
+
+def compare_fronts(dirs, metric: str = "best_val_acc") -> dict:
+    """The inference-time fronts of several folders (a search against a grid) by hypervolume, all
+    with one reference point: the lowest accuracy and the longest inference time of any setting
+    of any folder. Returns ``rows`` (folder, jobs, settings, front size, hypervolume, elapsed s)
+    and ``md`` (the table)."""
+    found = []
+    for d in map(Path, dirs):
+        rows = _metric_rows(d, metric)
+        found.append((d, rows, settings(rows, metric)[0]))
+    every = [s for _, _, per in found for s in per]
+    ref = (min(s["acc"] for s in every), max(s["infer_ms_per_shape"] for s in every))
+    out = []
+    for d, rows, per in found:
+        front = [s for s in per if s["pareto_infer"]]
+        out.append({"dir": str(d), "jobs": len(rows), "finished": sum(r.get("status") == "ok" for r in rows),
+                    "settings": len(per), "front": len(front), "elapsed_s": _elapsed_s(d, rows),
+                    "hypervolume": hypervolume([(s["acc"], s["infer_ms_per_shape"]) for s in front], ref),
+                    "best_acc": max(s["acc"] for s in per)})
+    lines = [f"Hypervolume of each folder's front ({'validation' if metric == 'best_val_acc' else 'test'} accuracy "
+             f"against inference ms per shape), in accuracy points x decades of time, from the common reference "
+             f"(accuracy {ref[0]:.3f}, {ref[1]:.2f} ms: the worst of every setting).", "",
+             "| folder | jobs (finished) | settings | front | best acc | hypervolume | elapsed |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| `{r['dir']}` | {r['jobs']} ({r['finished']}) | {r['settings']} | {r['front']} | {r['best_acc']:.3f} | "
+              f"{r['hypervolume']:.2f} | {r['elapsed_s'] / 60:.1f} min |" for r in out]
+    return {"rows": out, "ref": ref, "md": "\n".join(lines) + "\n"}
