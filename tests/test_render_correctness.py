@@ -140,12 +140,15 @@ def test_training_settings_give_nonzero_bounded_camera_gradients(name):
         assert g.abs().max() < 10.0, f"{name}: camera gradient spikes {g}"
 
 
-def test_tile_overflow_warns_and_drops_nothing(monkeypatch):
+@pytest.mark.parametrize("mode", ["hard", "soft"])
+def test_tile_overflow_warns_and_drops_nothing(monkeypatch, mode):
+    """Hard mode (K = 1) chunks runs of faces and combines their winners; soft mode bins by tile:
+    a budget far under one face's box gives the images of one chunk, with one warning."""
     monkeypatch.setattr(tiles, "_warned_tile_budget", False)
     mesh = random_triangles(30, seed=9)
-    full = MultiViewRenderer(image_size=32, mode="hard", shading="silhouette")
-    tight = MultiViewRenderer(image_size=32, mode="hard", shading="silhouette", tile_size=16, max_candidates=10)
-    a, e = torch.tensor([[0.0]]), torch.tensor([[0.0]])
+    full = MultiViewRenderer(image_size=32, mode=mode, shading="silhouette")
+    tight = MultiViewRenderer(image_size=32, mode=mode, shading="silhouette", tile_size=16, max_candidates=10)
+    a, e = torch.tensor([[0.0, 70.0]]), torch.tensor([[0.0, 20.0]])
     with pytest.warns(RuntimeWarning, match="budget grown, nothing dropped"):
         out = tight(mesh, a, e, 3.0).images
     assert torch.equal(out, full(mesh, a, e, 3.0).images)
@@ -172,17 +175,24 @@ def test_train_mode_randomises_light_and_colour_eval_is_fixed():
 
 @pytest.mark.parametrize("specular", [0.0, 0.4])
 def test_flat_shading_per_face_view_equals_per_pixel(monkeypatch, specular):
+    """Flat colours shaded once per seen face-view, per face-view or per pixel: the same images and
+    the same camera gradients."""
     from mvtn_exp.render import renderer as renderer_module
 
     mesh = icosphere(2)
-    r = MultiViewRenderer(image_size=40, specular=specular, light="fixed", light_direction=[0.3, 1.0, 0.2])
-    a, e = torch.tensor([[10.0, 200.0]]), torch.tensor([[30.0, -70.0]])
-    monkeypatch.setattr(renderer_module, "SHADE_FACE_VIEWS", True)
-    per_face = r(mesh, a, e).images
-    monkeypatch.setattr(renderer_module, "SHADE_FACE_VIEWS", False)
-    per_pixel = r(mesh, a, e).images
-    assert per_face.max() > 0.3
-    assert torch.equal(per_face, per_pixel)
+    r = MultiViewRenderer(image_size=40, mode="hard", specular=specular, light="camera")
+    out = {}
+    for how in ("seen", "all", "pairs"):
+        a, e = torch.tensor([[10.0, 200.0]], requires_grad=True), torch.tensor([[30.0, -70.0]], requires_grad=True)
+        monkeypatch.setattr(renderer_module, "SHADE_FLAT", how)
+        images = r(mesh, a, e).images
+        (images * torch.linspace(0, 1, images.numel()).view_as(images)).sum().backward()
+        out[how] = (images.detach(), a.grad, e.grad)
+    assert out["seen"][0].max() > 0.3 and out["seen"][1].abs().sum() > 0
+    for how in ("all", "pairs"):
+        assert torch.equal(out[how][0], out["seen"][0])
+        assert torch.allclose(out[how][1], out["seen"][1], rtol=1e-4, atol=1e-6)
+        assert torch.allclose(out[how][2], out["seen"][2], rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.parametrize("comp", ["alpha", "norm"])
@@ -291,3 +301,26 @@ def test_signed_sqdist_matches_autograd_reference_in_value_and_gradient():
     assert torch.all(masked[~valid] == FAR_SQ) and torch.equal(masked[valid], got.detach()[valid])
     assert torch.autograd.gradcheck(lambda v: signed_sqdist(v, corners[:60], p[:60, 0], p[:60, 1], interior[:60]),
                                     (xy.clone().requires_grad_(True),))
+
+
+def test_hard_chunks_of_faces_keep_the_tie_rule(monkeypatch):
+    """K = 1 over runs of faces: a face drawn twice (indices 0 and 25, the same depth everywhere)
+    wins with its smaller index even when its copies land in different chunks."""
+    from mvtn_exp.data.shapes import Meshes
+    from mvtn_exp.render import mesh_raster
+
+    monkeypatch.setattr(tiles, "_warned_tile_budget", True)  # (the warning is tested above)
+    base = random_triangles(24, seed=3)
+    verts = torch.cat([base.verts, base.verts[:3]])
+    faces = torch.cat([base.faces, torch.arange(72, 75)[None]])  # face 24 copies face 0
+    mesh = Meshes.from_list([verts], [faces])
+    r = MultiViewRenderer(image_size=32, mode="hard", shading="silhouette")
+    a, e = torch.tensor([[0.0, 90.0]]), torch.tensor([[0.0, 10.0]])
+    with torch.no_grad():
+        pf = r.project_faces(mesh, a, e, torch.full_like(a, 3.0))[0]
+    runs = [mesh_raster.search_faces(pf, H=32, W=32, K=1, blur_radius=0.0, tile_size=16, max_candidates=m)
+            for m in (1 << 21, 40, 1)]
+    for s in runs[1:]:
+        assert torch.equal(s.pix, runs[0].pix) and torch.equal(s.prim, runs[0].prim)
+    won = runs[0].prim[:, 0] // 2  # face index (fv = face * M + view)
+    assert (won == 0).any() and not (won == 24).any()

@@ -266,25 +266,48 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
                 raise ValueError("search_faces: soft mode (blur_radius > 0) needs a SoftRanking")
             return soft_search.search(pf, H=H, W=W, K=K, blur_radius=blur_radius, tile_size=tile_size,
                                       max_candidates=max_candidates, ranking=ranking)
-        boxes = face_boxes(pf.cols, None, 0.0, H, W)
-        # culled faces, and faces whose box holds no pixel centre (off-screen, or tiny between
-        # centres), stop here
-        fv = torch.nonzero(pf.alive & (boxes.sizes() > 0)).squeeze(1)
-        cols = pf.cols.index_select(1, fv)
-        boxes = tiles.PixelBoxes(pf.image_of(fv), *(t.index_select(0, fv) for t in (boxes.j0, boxes.j1, boxes.i0, boxes.i1)))
-        table = face_table(cols)
-        span = row_spans(table_planes(table), boxes, 0.0, SMALL_BOX_HARD, W)
         num_pixels = pf.num_images * H * W
-        picks = []
-        # faces covering each pixel, depth from the barycentric planes
-        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, SMALL_BOX_HARD):
-            cand = tiles.concat(parts)
-            lam = barycentrics(table, cand.prim, cand.x, cand.y)
-            keep = torch.nonzero(covers(lam)).squeeze(1)
-            prim = cand.prim.index_select(0, keep)
-            depth = 1.0 / inverse_depth(table, prim, [l.index_select(0, keep) for l in lam]).clamp(min=1e-12)
-            picks.append(tiles.select_nearest(cand.pix.index_select(0, keep), depth, fv.index_select(0, prim), K, num_pixels))
-        return tiles.merge(picks, K, pf.cols.device)
+        if K > 1:
+            return tiles.merge(list(_hard_picks(pf, 0, pf.cols.shape[1], H, W, K, tile_size, max_candidates, num_pixels)),
+                               K, pf.cols.device)
+        # K = 1: winners of runs of face-views combine (``tiles.nearest_one``), so the per-face work
+        # (boxes, face tables, row spans) is done a slice at a time: memory bounded for any batch
+        n, step = pf.cols.shape[1], max(1, max_candidates // 8)
+        picks = [p for a in range(0, n, step) for p in _hard_picks(pf, a, min(n, a + step), H, W, 1, tile_size,
+                                                                      max_candidates, num_pixels)]
+        if len(picks) != 1:
+            picks = [tiles.nearest_one(*(torch.cat(t) for t in zip(*picks)), num_pixels)] if picks else []
+        empty = torch.zeros(0, dtype=torch.long, device=pf.cols.device)
+        pix, _, best = picks[0] if picks else (empty, None, empty)
+        return tiles.Selection(pix, best.unsqueeze(1))
+
+
+def _hard_picks(pf: ProjectedFaces, start: int, stop: int, H: int, W: int, K: int, tile_size: int, max_candidates: int,
+                num_pixels: int):
+    """The nearest covering faces among face-views ``start:stop``, per candidate chunk: K = 1
+    ``tiles.nearest_one`` triples (chunks of consecutive faces), else ``tiles.select_nearest``
+    selections (whole pixels per chunk)."""
+    cols = pf.cols[:, start:stop]
+    boxes = face_boxes(cols, None, 0.0, H, W)
+    # culled faces, and faces whose box holds no pixel centre (off-screen, or tiny between
+    # centres), stop here
+    keep = torch.nonzero(pf.alive[start:stop] & (boxes.sizes() > 0)).squeeze(1)
+    fv = keep + start
+    cols = cols.index_select(1, keep)
+    boxes = tiles.PixelBoxes(pf.image_of(fv), *(t.index_select(0, keep) for t in (boxes.j0, boxes.j1, boxes.i0, boxes.i1)))
+    table = face_table(cols)
+    span = row_spans(table_planes(table), boxes, 0.0, SMALL_BOX_HARD, W)
+    # faces covering each pixel, depth from the barycentric planes
+    for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, SMALL_BOX_HARD,
+                                        by_primitive=K == 1):
+        cand = tiles.concat(parts)
+        lam = barycentrics(table, cand.prim, cand.x, cand.y)
+        inside = torch.nonzero(covers(lam)).squeeze(1)
+        prim = cand.prim.index_select(0, inside)
+        depth = 1.0 / inverse_depth(table, prim, [l.index_select(0, inside) for l in lam]).clamp(min=1e-12)
+        pix, ids = cand.pix.index_select(0, inside), fv.index_select(0, prim)
+        yield (tiles.nearest_one(pix, depth, ids, num_pixels) if K == 1
+               else tiles.select_nearest(pix, depth, ids, K, num_pixels))
 
 
 def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, need_bary: bool,

@@ -20,9 +20,10 @@ from .ops import scatter_rows, take, weighted3
 from .topology import edge_neighbours
 
 
-# flat shading: None = shade all face-views or only the hit (pixel, slot) pairs, whichever is
-# fewer; True / False force one (tests compare the two)
-SHADE_FACE_VIEWS: bool | None = None
+# flat shading, one colour per face and view: "seen" shades each face-view that some pixel shows
+# once (never more than the face-views or the pixels); "all" every face-view, "pairs" every
+# (pixel, slot) pair (the same numbers; tests compare the three)
+SHADE_FLAT = "seen"
 
 
 @dataclass
@@ -235,14 +236,23 @@ class MultiViewRenderer(nn.Module):
             normals = weighted3(frag.bary, take(vn, take(faces, f)))
             points = weighted3(frag.bary, take(tri, f))
             return shade(fv, normals, points)
-        # flat: one colour per face and view; shade every face-view once when there are fewer of
-        # them than (pixel, slot) pairs, else shade per pair (same numbers either way)
-        if (len(faces) * M <= fv.numel()) if SHADE_FACE_VIEWS is None else SHADE_FACE_VIEWS:
-            every = torch.arange(len(faces) * M, device=verts.device)
-            f = torch.div(every, M, rounding_mode="floor")
-            return take(shade(every, take(fn, f), take(tri.mean(1), f)), fv)
-        f = torch.div(fv, M, rounding_mode="floor")
-        return shade(fv, take(fn, f), take(tri.mean(1), f))
+        # flat: one colour per face and view (SHADE_FLAT); the seen face-views are found with a mark
+        # per face-view (linear, no sort) and each pixel takes its face-view's colour
+        if SHADE_FLAT == "pairs":
+            f = torch.div(fv, M, rounding_mode="floor")
+            return shade(fv, take(fn, f), take(tri.mean(1), f))
+        n = len(faces) * M
+        if SHADE_FLAT == "all":
+            which, slot_of = torch.arange(n, device=verts.device), fv
+        else:
+            seen = torch.zeros(n, dtype=torch.bool, device=verts.device)
+            seen[fv.reshape(-1)] = True
+            which = torch.nonzero(seen).squeeze(1)
+            slot = torch.empty(n, dtype=torch.long, device=verts.device)
+            slot[which] = torch.arange(len(which), device=verts.device)
+            slot_of = take(slot, fv)
+        f = torch.div(which, M, rounding_mode="floor")
+        return take(shade(which, take(fn, f), take(tri.mean(1), f)), slot_of)
 
     # ---------------------------------------------------------------- points
     def _render_points(self, clouds: PointClouds, azim, elev, dist) -> RenderOutput:

@@ -196,9 +196,14 @@ _warned_tile_budget = False
 
 
 def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_candidates: int, dtype=torch.float32,
-                     span=None, small_box: int = SMALL_BOX) -> Iterator[tuple[Candidates, Candidates]]:
+                     span=None, small_box: int = SMALL_BOX, by_primitive: bool = False) -> Iterator[tuple[Candidates, Candidates]]:
     """Yield candidate chunks, each as (from whole boxes, from row spans) (see ``_enumerate``);
-    every pixel's candidates lie in exactly one chunk."""
+    every pixel's candidates lie in exactly one chunk.
+
+    by_primitive: chunks are runs of consecutive primitives instead (a pixel's candidates may then
+    span chunks): for a search whose per-chunk winners combine (``nearest_one``), it skips the
+    binning into tiles, the dearest step of a dense scene.
+    """
     global _warned_tile_budget
     sizes = boxes.sizes()
     prim = torch.nonzero(sizes > 0).squeeze(1)
@@ -207,6 +212,21 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
     total = int(sizes[prim].sum())
     if total <= max_candidates:
         yield _enumerate(boxes, prim, H, W, span, dtype, None, small_box)
+        return
+    if by_primitive:
+        ends = torch.cumsum(sizes.index_select(0, prim), 0)
+        largest = int(sizes.max())
+        if largest > max_candidates and not _warned_tile_budget:
+            _warned_tile_budget = True
+            warnings.warn(f"renderer: one primitive's box holds {largest} candidates, over the chunk budget "
+                          f"max_candidates={max_candidates}; it is processed alone (budget grown, nothing dropped). "
+                          "Raise max_candidates to silence this.", RuntimeWarning, stacklevel=3)
+        start = 0
+        while start < len(prim):  # each run within the budget; a single primitive over it alone
+            base = int(ends[start - 1]) if start else 0
+            stop = max(start + 1, int(torch.searchsorted(ends, base + max_candidates, right=True)))
+            yield _enumerate(boxes, prim[start:stop], H, W, span, dtype, None, small_box)
+            start = stop
         return
     tiles, owner, tile_id = _split_box_by_tiles(boxes, prim, tile_size, H, W)
     pair_sizes = tiles.sizes()
@@ -292,6 +312,20 @@ def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K
         rest = torch.nonzero(rest).squeeze(1)
         rest_pix, rest_prim = sp.index_select(0, rest), prim.index_select(0, order.index_select(0, rest))
     return Selection(active, out.view(-1, K), rest_pix, rest_prim, int(rank.max()) + 1)
+
+
+def nearest_one(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, num_pixels: int):
+    """Per pixel the candidate of smallest ``score`` (ties: smaller ``prim``): ``(pix, score, prim)``,
+    each ``[P]``, pixels ascending. Winners of disjoint candidate sets, concatenated and passed
+    through again, give the winners of their union (so chunks of any partition combine)."""
+    zmin = torch.full((num_pixels,), float("inf"), dtype=score.dtype, device=pix.device)
+    zmin.scatter_reduce_(0, pix, score, "amin")
+    win = score == zmin.index_select(0, pix)
+    none = torch.iinfo(torch.long).max
+    best = torch.full((num_pixels,), none, dtype=torch.long, device=pix.device)
+    best.scatter_reduce_(0, pix[win], prim[win], "amin")
+    active = torch.nonzero(best != none).squeeze(1)
+    return active, zmin.index_select(0, active), best.index_select(0, active)
 
 
 def merge(selections: list[Selection], K: int, device) -> Selection:
