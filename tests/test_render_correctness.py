@@ -324,3 +324,37 @@ def test_hard_chunks_of_faces_keep_the_tie_rule(monkeypatch):
         assert torch.equal(s.pix, runs[0].pix) and torch.equal(s.prim, runs[0].prim)
     won = runs[0].prim[:, 0] // 2  # face index (fv = face * M + view)
     assert (won == 0).any() and not (won == 24).any()
+
+
+@pytest.mark.parametrize("colored", [False, True])
+def test_packed_point_compositing_equals_the_dense_formulas(colored):
+    """Rank-by-rank compositing of the occupied slots gives the dense [P, K] formulas (front to
+    back, and normalised with the background as a sample), values and gradients, with alphas of
+    exactly 0 and 1 among them."""
+    from mvtn_exp.render import shading
+
+    g = torch.Generator().manual_seed(2)
+    P, K = 7, 4
+    used = torch.tensor([4, 1, 0, 3, 2, 4, 1])  # slots per pixel, filled from rank 0
+    slot = torch.cat([p * K + torch.arange(n) for p, n in enumerate(used.tolist())])
+    alpha = torch.rand(len(slot), generator=g, dtype=torch.float64)
+    alpha[0], alpha[3] = 1.0, 0.0
+    alpha.requires_grad_(True)
+    colors = torch.rand(len(slot), 3, generator=g, dtype=torch.float64) if colored else None
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    dense_a = alpha.new_zeros(P * K).index_copy(0, slot, alpha).view(P, K)
+    dense_c = None if colors is None else colors.new_zeros(P * K, 3).index_copy(0, slot, colors).view(P, K, 3)
+    c = torch.ones(P, K, 1, dtype=torch.float64) if dense_c is None else dense_c
+    T = torch.cumprod(1 - dense_a, 1)
+    w = dense_a * torch.cat([torch.ones_like(T[:, :1]), T[:, :-1]], 1)
+    want_alpha = ((w[..., None] * c).sum(1) + T[:, -1:] * bg, 1 - T[:, -1])
+    Tn = torch.prod(1 - dense_a, 1, keepdim=True)
+    want_norm = (((dense_a[..., None] * c).sum(1) + Tn * bg) / (dense_a.sum(1, keepdim=True) + Tn), 1 - Tn[:, 0])
+    for fn, want in ((shading.alpha_composite, want_alpha), (shading.norm_weighted_composite, want_norm)):
+        rgb, cov = fn(slot, alpha, P, K, colors, bg)
+        assert torch.allclose(rgb, want[0]) and torch.allclose(cov, want[1])
+        weights = torch.linspace(0.1, 1.0, rgb.numel(), dtype=torch.float64).view_as(rgb)
+        got = torch.autograd.grad((rgb * weights).sum() + cov.sum(), alpha)[0]
+        ref = torch.autograd.grad((want[0] * weights).sum() + want[1].sum(), alpha, retain_graph=True)[0]
+        assert torch.allclose(got, ref)
+    assert torch.equal(shading.alpha_composite(slot, alpha, P, K, colors, bg)[1][2], torch.tensor(0.0, dtype=torch.float64))

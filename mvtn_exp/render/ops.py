@@ -13,11 +13,6 @@ def take(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return t.index_select(0, idx.reshape(-1)).view(*idx.shape, *t.shape[1:])
 
 
-def scatter_rows(base: torch.Tensor, idx: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """Out-of-place ``base[idx] = rows`` for unique ``idx`` (backward: gathers only)."""
-    return base.index_copy(0, idx, rows)
-
-
 # Per-(pixel, slot) vector maths in components: ``[..., 3]`` tensors are unbound into three
 # ``[...]`` ones and put back together with ``stack``. On CPU a reduction over a last dimension of
 # 3 costs about ten times the fused adds (measured: ``x.sum(-1)`` 0.78 ms, ``x0 + x1 + x2`` 0.07 ms

@@ -37,16 +37,18 @@ def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive:
         return tiles.merge(picks, K, xy.device)
 
 
-def point_alphas(xy: torch.Tensor, sel: tiles.Selection, *, H: int, W: int, radius: float, opacity: float) -> torch.Tensor:
-    """Differentiable alphas ``[P, K]`` (0 in empty slots), computed for the occupied slots only.
+def point_alphas(xy: torch.Tensor, sel: tiles.Selection, *, H: int, W: int, radius: float,
+                 opacity: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Differentiable alphas of the occupied slots only: (slot ``[S]``, flat indices into
+    ``sel.prim.view(-1)``, ascending (pixel by pixel, nearest first); alpha ``[S]``).
 
     Alpha falls off smoothly with the squared screen distance d^2 to the point's centre:
     ``opacity * (1 - d^2/r^2)^2``, C1 at the rim so camera gradients stay bounded.
     """
-    P, K = sel.prim.shape
+    K = sel.prim.shape[1]
     slot = sel.occupied()
     px, py = tiles.pixel_centres(sel.pix.index_select(0, torch.div(slot, K, rounding_mode="floor")), H, W, xy.dtype)
     p = take(xy, sel.prim.reshape(-1).index_select(0, slot))
     d2 = (p[:, 0] - px) ** 2 + (p[:, 1] - py) ** 2
     t = (1 - d2 / (radius * radius)).clamp(min=0)
-    return xy.new_zeros(P * K).index_copy(0, slot, opacity * t * t).view(P, K)
+    return slot, opacity * t * t

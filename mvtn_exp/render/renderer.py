@@ -16,7 +16,7 @@ from ..data.shapes import Meshes, PointClouds
 from . import lod, mesh_raster, point_raster, shading, soft_search
 from .cameras import Cameras, camera_to_ndc, to_camera_packed
 from .config import RendererConfig
-from .ops import scatter_rows, take, weighted3
+from .ops import take, weighted3
 from .topology import edge_neighbours
 
 
@@ -86,12 +86,15 @@ class MultiViewRenderer(nn.Module):
     def _compose(self, pix, rgb, alpha, B, M, H, W, ref) -> tuple[torch.Tensor, torch.Tensor]:
         """Scatter active-pixel rgb ``[P, 3]`` and alpha ``[P]`` into dense channel-first images."""
         HW = H * W
-        img = self._background(ref)[:, None].expand(B * M, 3, HW).reshape(-1)
+        # fresh flat buffers written in place (not through a view): the images' only copy, autograd
+        # keeps just the indices
+        img = torch.empty(B * M * 3 * HW, dtype=ref.dtype, device=ref.device)
+        with torch.no_grad():
+            img.view(B * M, 3, HW).copy_(self._background(ref)[:, None].expand(B * M, 3, HW))
         # flat index of channel c of pixel p in image i: (3 i + c) HW + p = pix + 2 i HW + c HW
         base = pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
-        idx = torch.cat([base, base + HW, base + 2 * HW])
-        img = scatter_rows(img, idx, rgb.t().reshape(-1))
-        a = scatter_rows(torch.zeros(B * M * HW, dtype=ref.dtype, device=ref.device), pix, alpha)
+        img = img.index_copy_(0, torch.cat([base, base + HW, base + 2 * HW]), rgb.t().reshape(-1))
+        a = torch.zeros(B * M * HW, dtype=ref.dtype, device=ref.device).index_copy_(0, pix, alpha)
         return img.view(B, M, 3, H, W), a.view(B, M, 1, H, W)
 
     def _light_dirs(self, B, M, C, ref) -> torch.Tensor:
@@ -267,10 +270,10 @@ class MultiViewRenderer(nn.Module):
             alive = (z >= c.znear) & (xy.detach().abs() <= 1 + r).all(-1)
         sel = point_raster.search_points(xy, z, image, alive, H=H, W=W, K=c.points_per_pixel, radius=r,
                                          num_images=B * M, tile_size=c.tile_size, max_candidates=c.max_candidates)
-        a = point_raster.point_alphas(xy, sel, H=H, W=W, radius=r, opacity=c.point_opacity)
-        colors = None if clouds.colors is None else take(clouds.colors, sel.prim.clamp(min=0) // M)
+        slot, a = point_raster.point_alphas(xy, sel, H=H, W=W, radius=r, opacity=c.point_opacity)
+        colors = None if clouds.colors is None else take(clouds.colors, sel.prim.reshape(-1).index_select(0, slot) // M)
         bg = self._background(pts)
         composite = shading.alpha_composite if c.compositor == "alpha" else shading.norm_weighted_composite
-        rgb, alpha = composite(a, colors, bg)
+        rgb, alpha = composite(slot, a, len(sel.pix), sel.prim.shape[1], colors, bg)
         images, alpha = self._compose(sel.pix, rgb, alpha, B, M, H, W, pts)
         return RenderOutput(images, alpha, {"points_alive": int(alive.sum()), "active_pixels": len(sel.pix)})

@@ -89,26 +89,53 @@ def softmax_blend(colors, dist, zbuf, owner, alpha, zfar, znear, background, *, 
     return rgb.clamp(0, 1)  # clamp: rounding can exceed 1 by an ulp
 
 
-def alpha_composite(alpha, colors, background):
-    """Front-to-back ``sum_k c_k a_k prod_{j<k}(1 - a_j)`` plus the background times transmittance.
+def _ranks(slot: torch.Tensor, K: int):
+    """Packed slots ``[S]`` (flat indices into ``[P, K]``, ascending) -> per rank k < K the
+    positions in ``slot`` of the slots of rank k, and their pixels (``[n_k]`` each; a pixel's
+    slots fill from rank 0, so n_0 >= n_1 >= ...)."""
+    with torch.no_grad():
+        rank = slot % K
+        pix = torch.div(slot, K, rounding_mode="floor")
+    for k in range(K):
+        at = torch.nonzero(rank == k).squeeze(1)
+        if len(at) == 0:
+            return
+        yield at, pix.index_select(0, at)
 
-    alpha ``[P, K]`` (slots nearest first), colors ``[P, K, 3]`` or None for white, background ``[3]``.
-    """
-    T = torch.cumprod(1 - alpha, 1)  # transmittance after each slot
-    w = alpha * torch.cat([torch.ones_like(T[:, :1]), T[:, :-1]], 1)
-    lit = w.sum(1, keepdim=True) if colors is None else (w[..., None] * colors).sum(1)
-    rgb = lit + T[:, -1:] * background
-    return rgb, 1 - T[:, -1]
+
+def _ones_on_graph(alpha: torch.Tensor, P: int) -> torch.Tensor:
+    """Ones ``[P]`` that are a function of ``alpha`` (an empty index_add): with no slot at all the
+    images still have a (zero) gradient, as the camera can move points into view."""
+    return alpha.new_ones(P).index_add(0, torch.zeros(0, dtype=torch.long, device=alpha.device), alpha[:0])
 
 
-def norm_weighted_composite(alpha, colors, background):
-    """Normalised weights with the background as one more sample of weight ``prod_k (1 - a_k)``.
+def alpha_composite(slot, alpha, P: int, K: int, colors, background):
+    """Front-to-back ``sum_k c_k a_k prod_{j<k}(1 - a_j)`` plus the background times transmittance,
+    over packed slots: slot, alpha ``[S]`` (``point_raster.point_alphas``), colors ``[S, 3]`` or
+    None for white, background ``[3]``; ``P`` pixels of ``K`` slots. Rank by rank, so memory
+    follows the occupied slots, not ``P x K``."""
+    T = _ones_on_graph(alpha, P)  # transmittance before the rank being added
+    lit = alpha.new_zeros(P, 1 if colors is None else 3)
+    for at, pix in _ranks(slot, K):
+        a, before = alpha.index_select(0, at), T.index_select(0, pix)
+        w = (a * before)[:, None]
+        lit = lit.index_add(0, pix, w if colors is None else w * colors.index_select(0, at))
+        T = T.index_copy(0, pix, before * (1 - a))
+    return lit + T[:, None] * background, 1 - T
+
+
+def norm_weighted_composite(slot, alpha, P: int, K: int, colors, background):
+    """Normalised weights with the background as one more sample of weight ``prod_k (1 - a_k)``
+    (packed slots as in ``alpha_composite``).
 
     The denominator ``sum_k a_k + prod_k (1 - a_k)`` is >= 1 for any alphas in [0, 1], so nothing
     is clamped and rims do not spike; with K = 1 the image still depends on the camera through
     the falloff (a normalisation without the background term would make it camera-independent).
     """
-    T = torch.prod(1 - alpha, 1, keepdim=True)
-    lit = alpha.sum(1, keepdim=True) if colors is None else (alpha[..., None] * colors).sum(1)
-    num = lit + T * background
-    return num / (alpha.sum(1, keepdim=True) + T), 1 - T[:, 0]
+    pix = torch.div(slot, K, rounding_mode="floor")
+    T = _ones_on_graph(alpha, P)
+    for at, p in _ranks(slot, K):
+        T = T.index_copy(0, p, T.index_select(0, p) * (1 - alpha.index_select(0, at)))
+    total = alpha.new_zeros(P).index_add(0, pix, alpha)
+    lit = total[:, None] if colors is None else alpha.new_zeros(P, 3).index_add(0, pix, alpha[:, None] * colors)
+    return (lit + T[:, None] * background) / (total + T)[:, None], 1 - T
