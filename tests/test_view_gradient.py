@@ -296,3 +296,40 @@ def test_smoothed_gradient_is_finite_at_the_poles(tmp_path, elev):
     views = (torch.full((4, 2), 30.0), torch.full((4, 2), elev), torch.full((4, 2), 2.2))
     ga, ge = smoothed_view_gradient(render_loss, views, 2, 10.0, noise_generator(0, 0))
     assert torch.isfinite(ga).all() and torch.isfinite(ge).all() and (ga.abs() + ge.abs()).sum() > 0
+
+
+@pytest.mark.parametrize("hypotheses", [1, 2])
+def test_batched_probes_equal_one_render_per_probe(tmp_path, hypotheses):
+    """All probes of a step in one render and one pass of C give each probe's own loss (rows in
+    order, hypotheses kept apart), so the smoothed gradient matches the one-render-per-probe loop."""
+    from mvtn_exp.data.collate import collate_shapes
+    from mvtn_exp.engine import view_gradient
+    from mvtn_exp.engine.trainer import make_datasets
+    from mvtn_exp.tasks import classification
+
+    from test_train_e2e import tiny_model
+
+    cfg, model = tiny_model(str(tmp_path / "cache"), views=2)
+    ds = make_datasets(cfg)["train"]
+    batch = collate_shapes([ds[i] for i in range(3)])
+    H = hypotheses
+    labels = batch["labels"].repeat_interleave(H)
+    batched = view_gradient.model_render_loss(model, batch, labels, classification.loss_fn(cfg.task, reduction="none"), H)
+    assert batched.batched
+
+    def one_at_a_time(a, e, d):
+        return batched(a, e, d)  # [B * H, M] -> [B * H]: the same function, one probe per call
+
+    g = torch.Generator().manual_seed(3)
+    views = (torch.rand(3 * H, 2, generator=g) * 360, torch.rand(3 * H, 2, generator=g) * 120 - 60, torch.full((3 * H, 2), 2.2))
+    stacked = tuple(torch.stack([v, v + 15.0 * (i + 1)]) for i, v in enumerate(views[:2])) + (views[2].expand(2, -1, -1),)
+    many = batched(*stacked)
+    for k in range(2):
+        single = one_at_a_time(stacked[0][k], stacked[1][k], stacked[2][k])
+        assert many.shape == (2, 3 * H) and torch.allclose(many[k], single, rtol=1e-4, atol=1e-5)
+    # different probes give different losses (the rows are not one probe repeated)
+    assert not torch.allclose(many[0], many[1])
+    a = smoothed_view_gradient(batched, views, 2, 10.0, noise_generator(0, 5))
+    b = smoothed_view_gradient(one_at_a_time, views, 2, 10.0, noise_generator(0, 5))
+    assert all(torch.allclose(x, y, rtol=1e-3, atol=1e-5) for x, y in zip(a, b))
+    assert (a[0].abs() + a[1].abs()).sum() > 0
