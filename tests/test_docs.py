@@ -223,11 +223,15 @@ def check_bench(argv, capsys):
 
 
 def check_tradeoff(argv, capsys):
-    flags = [a for a in argv if a.startswith("-")]
-    if set(flags) - {"--version", "-h", "--help"}:
-        return f"mvtn-tradeoff takes no options but --version / --help, got {flags}"
-    if not flags and len(argv) != 1:
-        return f"mvtn-tradeoff takes one sweep folder, got {argv}"
+    """mvtn-tradeoff's own parser (a folder, --metric, --against)."""
+    from mvtn_exp.cli.tradeoff import build_parser
+
+    if {"--version", "-h", "--help"} & set(argv):
+        return None
+    try:
+        build_parser().parse_args(argv)
+    except SystemExit:
+        return f"mvtn-tradeoff refuses {argv}: {capsys.readouterr().err.strip()}"
     return None
 
 

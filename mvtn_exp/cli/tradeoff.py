@@ -18,13 +18,17 @@ from ..engine.provenance import package_version
 from ..engine.tradeoff import METRICS, TradeoffError, compare_fronts, write_tradeoff
 
 
-def main(argv=None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mvtn-tradeoff", description=__doc__.splitlines()[0].split(": ", 1)[1])
     p.add_argument("sweep_dir", metavar="DIR", help="a sweep folder written by mvtn-train -m")
     p.add_argument("--metric", default="test_acc", choices=METRICS, help="the accuracy of the front (default test_acc)")
     p.add_argument("--against", nargs="+", default=[], metavar="OTHER", help="folders whose fronts to set beside DIR's")
     p.add_argument("--version", action="version", version=f"mvtn-tradeoff (mvtn-exp {package_version()})")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> None:
+    args = build_parser().parse_args(argv)
     try:
         out = write_tradeoff(args.sweep_dir, args.metric)
         fronts = compare_fronts([args.sweep_dir, *args.against], args.metric) if args.against else None
