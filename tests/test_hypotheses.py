@@ -146,6 +146,7 @@ def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
     ({**HYP, "selector.hypotheses": 0}, "selector.hypotheses"),
     ({**HYP, "selector.race_z": -1.0}, "selector.race_z"),
     ({**HYP, "selector.race_mode": "mixed"}, "selector.race_mode"),
+    ({**HYP, "selector.race_batches": 0}, "selector.race_batches"),
 ])
 def test_bad_hypothesis_settings_are_refused(tmp_path, overrides, needle):
     with pytest.raises(ValueError, match=needle):
@@ -161,6 +162,39 @@ def test_a_clear_lead_ends_exploration_early(tmp_path):
     losses = [h["hypothesis_losses"] for h in run["history"]]
     assert len(losses[0]) == 2 and losses[1] is None and losses[2] is None
     assert "a clear lead: kept from now on" in (tmp_path / "run" / "train.log").read_text()
+
+
+def test_a_race_on_a_few_batches_is_decided_within_its_epoch(tmp_path, monkeypatch):
+    """race_batches=2: the first two steps render both hypotheses, every later step (the rest of
+    that epoch, and the epochs race_epochs would still allow) the kept one alone; the decision is
+    the lowest mean loss of those two steps and survives a resume."""
+    from mvtn_exp.model import MVTN
+
+    seen = []
+    real = MVTN.render
+
+    def counting(self, batch, azim, *rest):
+        if self.training:  # the training step's render (probes and validation run in eval mode)
+            seen.append(azim.shape[1])
+        return real(self, batch, azim, *rest)
+
+    cache = str(tmp_path / "cache")
+    cfg = {**HYP, "selector.race_epochs": 3, "selector.race_z": None, "selector.race_batches": 2,
+           "selector.probe_every": 1000}
+    monkeypatch.setattr(MVTN, "render", counting)
+    run = train(tiny(cache, epochs=2, **cfg), tmp_path / "run")
+    monkeypatch.setattr(MVTN, "render", real)
+    first, second = run["history"]
+    assert len(first["hypothesis_losses"]) == 2 and second["hypothesis_losses"] is None
+    assert first["hypothesis_active"] == second["hypothesis_active"] == min(range(2), key=lambda h: first["hypothesis_losses"][h])
+    log = (tmp_path / "run" / "train.log").read_text()
+    assert "(after 2 batches: kept from now on)" in log
+    M = 2  # tiny's views
+    assert seen[:2] == [2 * M, 2 * M] and set(seen[2:]) == {M} and len(seen) > 4
+    train(tiny(cache, epochs=1, **cfg), tmp_path / "a")
+    resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **cfg), tmp_path / "b")
+    assert resumed["confusion_matrix"] == run["confusion_matrix"]
+    assert abs(resumed["history"][1]["train_loss"] - second["train_loss"]) <= 1e-6
 
 
 def test_pooled_race_scores_each_hypothesis_alone(tmp_path):

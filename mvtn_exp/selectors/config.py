@@ -140,7 +140,7 @@ class LearnedSelectorConfig(SelectorConfig):
                                       "warmup_num_views", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every",
                                       "search_views", "search_every", "search_weight",
                                       "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
-                                      "race_z", "race_mode", "cache")
+                                      "race_z", "race_batches", "race_mode", "cache")
 
     def validate(self) -> "LearnedSelectorConfig":
         super().validate()

@@ -207,8 +207,10 @@ class PoiConfig(LearnedSelectorConfig):
     of G starting there); ``cache``: shapes whose rotation-invariant descriptors are kept (0: none;
     4096 shapes x 256 points: about 46 MB). ``hypotheses``: H sets of M views raced side by side
     for at most ``race_epochs`` epochs, the one of lowest G loss kept (earlier once it leads every
-    other by ``race_z`` paired standard errors; null: never earlier); ``race_mode``: C classifies
-    each hypothesis's views as a shape of its own (separate) or all H x M views pooled (pooled)."""
+    other by ``race_z`` paired standard errors; null: never earlier); ``race_batches``: a racing
+    epoch renders all hypotheses for at most this many batches, then the race is decided for good on
+    them (null: whole epochs); ``race_mode``: C classifies each hypothesis's views as a shape of its
+    own (separate) or all H x M views pooled (pooled)."""
 
     name: str = "mvtn_poi"
     gain: float = 8.0
@@ -217,6 +219,7 @@ class PoiConfig(LearnedSelectorConfig):
     hypotheses: int = 1
     race_epochs: int = 0
     race_z: Optional[float] = 3.0
+    race_batches: Optional[int] = None
     race_mode: str = "separate"
     descriptors: list[str] = field(default_factory=lambda: list(DESCRIPTORS))
 
@@ -229,6 +232,8 @@ class PoiConfig(LearnedSelectorConfig):
         at_least("selector.race_epochs", self.race_epochs, 0)
         if self.race_z is not None:
             at_least("selector.race_z", self.race_z, 0.0)
+        if self.race_batches is not None:
+            at_least("selector.race_batches", self.race_batches, 1)
         one_of("selector.race_mode", self.race_mode, RACE_MODES)
         if (self.hypotheses > 1) != (self.race_epochs > 0):
             raise ValueError(f"selector.hypotheses={self.hypotheses} with selector.race_epochs={self.race_epochs}: "

@@ -10,7 +10,8 @@ selector with ``grad=smoothed``, ``flip_explore > 0`` or ``hypotheses > 1``:
   antipode had the lower loss turns round at the end of the epoch (``polarity.py``);
 - ``hypotheses`` H > 1 (``mvtn_poi``, ``poi``): for at most ``race_epochs`` epochs all H sets of
   views are rendered, C trains on each (``race_mode``), and the set of lowest G loss is kept
-  (``hypotheses.py``).
+  (``hypotheses.py``); with ``race_batches`` N the race is decided for good after N batches of a
+  racing epoch (the rest of the epoch renders the kept set alone).
 """
 from __future__ import annotations
 
@@ -67,9 +68,28 @@ class ProbeTraining(LearnedTraining):
         # race_mode=separate) or all H x M views of a shape pooled as one (S = 1: pooled)
         self.H = model.hypotheses.hypotheses if self.racing(model, epoch) else 1
         self.S = self.H if self.H == 1 or self.s.race_mode == "separate" else 1
+        self.race_steps, self.race_losses, self.race_lines = 0, None, []
+
+    def decide_race(self, model, epoch: int, final: bool) -> None:
+        """The hypothesis of lowest mean G loss so far becomes the active one; the race ends when it
+        leads clearly, at its last epoch, or when ``final``; a line for the log."""
+        active, self.race_losses, clear = model.hypotheses.decide(self.s.race_z)
+        if active is not None:
+            model.selector.active.fill_(active)
+        last = epoch + 1 == self.s.race_epochs
+        if clear or last or final:
+            model.hypotheses.finish()
+        how = (f" (after {self.race_steps} batches: kept from now on)" if final else
+               " (a clear lead: kept from now on)" if clear else " (kept from now on)" if last else "")
+        self.race_lines.append(f"epoch {epoch + 1}: hypotheses' mean {self.s.loss} loss "
+                               f"{' / '.join(f'{x:.4f}' for x in self.race_losses)}: hypothesis {active} active{how}")
 
     def train_step(self, model, batch: dict, step: int, loss_fn, timer) -> Step:
         self.timer = timer
+        if self.H > 1 and self.s.race_batches is not None and self.race_steps >= self.s.race_batches:
+            self.decide_race(model, self.epoch, final=True)  # decided on the batches so far
+            self.H = self.S = 1
+        self.race_steps += self.H > 1
         H, S = self.H, self.S
         with timer.stage("selector"), torch.set_grad_enabled(not self.frozen):
             views = self.warmup_views(model, batch) if self.warm else model.select(batch, all_hypotheses=H > 1)
@@ -105,18 +125,9 @@ class ProbeTraining(LearnedTraining):
             turned = model.polarity.decide()
             if turned:
                 lines.append(f"epoch {epoch + 1}: view(s) {turned} turned round (their antipodes had the lower loss)")
-        self.race_losses = None
         if self.racing(model, epoch):
-            active, self.race_losses, clear = model.hypotheses.decide(self.s.race_z)
-            if active is not None:
-                model.selector.active.fill_(active)
-            last = epoch + 1 == self.s.race_epochs
-            if clear or last:
-                model.hypotheses.finish()
-            lines.append(f"epoch {epoch + 1}: hypotheses' mean {self.s.loss} loss "
-                         f"{' / '.join(f'{x:.4f}' for x in self.race_losses)}: hypothesis {active} active"
-                         + (" (a clear lead: kept from now on)" if clear else " (kept from now on)" if last else ""))
-        return lines
+            self.decide_race(model, epoch, final=False)
+        return lines + self.race_lines
 
     def history(self, model) -> dict:
         out = {}
