@@ -131,8 +131,9 @@ def prims_of(shape) -> int:
     return int(shape.faces_per_shape[0]) if isinstance(shape, Meshes) else int(shape.points_per_shape[0])
 
 
-# LOD budgets measured (faces per image pixel); the first is the renderer's default
-LOD_FACES_PER_PIXEL = (0.5, 0.25, 0.125)
+# LOD budgets measured: None is the renderer's default rule (faces per pixel row, silhouette-checked),
+# the others the former rule (faces per image pixel)
+LOD_FACES_PER_PIXEL = (None, 0.5, 0.25, 0.125)
 
 
 def renderer_for(shape, size: int, K: int, shading: str = "flat", **extra) -> MultiViewRenderer:
@@ -324,10 +325,11 @@ class Bench:
         base = renderer_for(mesh, size, 1)
         r = renderer_for(mesh, size, 1, lod=True, lod_faces_per_pixel=fpp)
         v = Views(M, 1, self.dev)
-        budget = lod.face_budget(size, r.cfg.lod_faces_per_pixel)
-        # one-off: the simplification the renderer caches (this call fills the cache)
+        c = r.cfg
+        budget = lod.face_budget(size, c.lod_faces_per_row, c.lod_faces_per_pixel)
+        # one-off: the simplification (and its silhouette check) the renderer caches (this call fills the cache)
         t0 = time.perf_counter()
-        simple = lod.simplify_meshes(mesh, budget)
+        simple = lod.simplify_meshes(mesh, budget, size, c.lod_min_iou)
         simplify_s = time.perf_counter() - t0
         fwd, fwd_bwd, _ = render_fns(r, mesh, v)
         first_s = timed(fwd_bwd, self.dev)  # first (cached) call: warm-up, not timed
@@ -386,7 +388,7 @@ class Bench:
                 for n, s, m, k, sh in configs]
         out += [(f"dense {name} {size}px M={M}", lambda a=(name, size, M): self.job_dense(*a))
                 for name in g.meshes for size in g.sizes for M in g.views]
-        out += [(f"lod {name} {fpp} faces/px", lambda n=name, f=fpp: self.job_lod(n, f))
+        out += [(f"lod {name} {'default' if fpp is None else f'{fpp} faces/px'}", lambda n=name, f=fpp: self.job_lod(n, f))
                 for name in g.lod_meshes for fpp in LOD_FACES_PER_PIXEL]
         out.append(("soft edge error", self.job_edge_error))
         if self.opts.modules:
@@ -470,7 +472,7 @@ def targets(bench: Bench) -> list[dict]:
     small, big = bench.find_grid("torus-2k", S, M, 1), bench.find_grid("torus-100k", S, M, 1)
     lod_big = next((r for r in res.lod if r["shape"] == "torus-100k" and r["fpp"] == LOD_FACES_PER_PIXEL[0]), None)
     for label, big_s in (("without LOD", big["fwd_bwd_s"] if big else None),
-                         (f"with LOD ({LOD_FACES_PER_PIXEL[0]:g} faces/px)", lod_big["lod_fwd_bwd_s"] if lod_big else None)):
+                         ("with LOD (the renderer's default)", lod_big["lod_fwd_bwd_s"] if lod_big else None)):
         title = f"100k-face vs 2k-face mesh, {S} px, {M} views, K=1 fwd+bwd, {label}"
         if small is None or big_s is None:
             out.append(_target(title, "-", "<= 2 x", None, quick))
@@ -581,14 +583,16 @@ def to_markdown(res: Results) -> str:
         rows = []
         for r in res.lod:
             a, b = med_ms(r["no_lod_fwd_bwd_s"]), med_ms(r["lod_fwd_bwd_s"])
-            after = f"{r['faces_after']}" + (" (under budget)" if r["faces_after"] == r["prims"] else "")
-            rows.append([r["shape"], r["prims"], r["fpp"], after, r["budget"], f"{a:.1f}", f"{b:.1f}", f"{a / b:.2f} x", f"{r['simplify_s']:.2f}",
+            after = f"{r['faces_after']}" + (" (kept whole)" if r["faces_after"] == r["prims"] else "")
+            rule = "default: 32 per row, checked" if r["fpp"] is None else f"{r['fpp']:g} per pixel"
+            rows.append([r["shape"], r["prims"], rule, after, r["budget"], f"{a:.1f}", f"{b:.1f}", f"{a / b:.2f} x", f"{r['simplify_s']:.2f}",
                          f"{r['first_call_s']:.2f}", f"{r['image_mae']:.4f}", f"{r['silhouette_iou']:.4f}"])
         S, M = res.lod[0]["size"], res.lod[0]["views"]
         parts.append(f"## Level of detail ({S} px, {M} views, K=1, forward+backward)\n\n"
-                     + md_table(["mesh", "faces", "lod_faces_per_pixel", "faces after LOD", "budget", "no LOD ms", "LOD ms", "speed-up", "simplify s (one-off)",
+                     + md_table(["mesh", "faces", "budget rule", "faces after LOD", "budget", "no LOD ms", "LOD ms", "speed-up", "simplify s (one-off)",
                                  "first LOD call s", "image MAE", "silhouette IoU"], rows)
-                     + "\n\nLOD times exclude the first call; the simplification is timed once on its own (it is cached afterwards).")
+                     + "\n\nLOD times exclude the first call; the simplification is timed once on its own (it is cached afterwards). "
+                     "The default rule keeps a simplification only if its silhouettes keep IoU >= renderer.lod_min_iou.")
     else:
         parts.append("## Level of detail\n\nnot run (quick=true)")
 

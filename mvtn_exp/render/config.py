@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Optional
 
 MESH_MODES = ("hard", "soft")
 SHADINGS = ("flat", "smooth", "silhouette")
@@ -68,9 +69,13 @@ class RendererConfig:
     points_per_pixel: int = 8
     compositor: str = "alpha"
     point_opacity: float = 1.0
-    # level of detail: simplify meshes to lod_faces_per_pixel * image_size^2 faces (cached)
+    # level of detail (render/lod.py): simplify meshes to lod_faces_per_row * image_size faces
+    # (lod_faces_per_pixel * image_size^2 when set), keeping a simplification only if its
+    # silhouettes at image_size match the mesh's to lod_min_iou (cached per mesh)
     lod: bool = False
-    lod_faces_per_pixel: float = 0.5
+    lod_faces_per_row: float = 32.0
+    lod_faces_per_pixel: Optional[float] = None
+    lod_min_iou: float = 0.99
     # search
     tile_size: int = 32
     max_candidates: int = 1 << 21
@@ -98,7 +103,9 @@ class RendererConfig:
             "znear": self.znear > 0,
             "tile_size": self.tile_size >= 1,
             "max_candidates": self.max_candidates >= 1,
-            "lod_faces_per_pixel": self.lod_faces_per_pixel > 0,
+            "lod_faces_per_row": self.lod_faces_per_row > 0,
+            "lod_faces_per_pixel": self.lod_faces_per_pixel is None or self.lod_faces_per_pixel > 0,
+            "lod_min_iou": 0 <= self.lod_min_iou <= 1,
             "point_opacity": 0 < self.point_opacity <= 1,
             "coverage_tol": 0 <= self.coverage_tol < 1,
             "prob_cutoff": 0 < self.prob_cutoff < 0.5,

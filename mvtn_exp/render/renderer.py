@@ -124,7 +124,8 @@ class MultiViewRenderer(nn.Module):
         stats = {}
         if c.lod:
             before = int(meshes.faces_per_shape.sum())
-            meshes = lod.simplify_meshes(meshes, lod.face_budget(c.image_size, c.lod_faces_per_pixel))
+            meshes = lod.simplify_meshes(meshes, lod.face_budget(c.image_size, c.lod_faces_per_row, c.lod_faces_per_pixel),
+                                         c.image_size, c.lod_min_iou)
             stats["lod_faces"] = (before, int(meshes.faces_per_shape.sum()))
         verts = meshes.verts
         blur = c.effective_blur()
