@@ -85,3 +85,16 @@ def test_lod_keeps_a_real_tables_legs(real_samples):
     bare = Meshes.from_list([torch.tensor(unchecked.verts, dtype=torch.float32)], [torch.tensor(unchecked.faces)])
     cut = MultiViewRenderer(image_size=64, mode="hard", shading="silhouette")(bare, a, e).alpha > 0.5
     assert float((full & cut).sum() / (full | cut).sum()) < 0.9  # what the check prevents
+
+
+def test_the_lod_study_reports_what_lod_keeps():
+    """``scripts/studies/lod_check.py`` on a small sphere: a row per size, the budget of the
+    renderer's rule, a silhouette IoU that meets the check, and the Markdown table."""
+    from studies import study
+
+    lc = study("lod_check")
+    v, f = _sphere()
+    table = lc.rows({"sphere": lc.unit_mesh(v, f)}, [16, 32], 0.99, views=2)
+    assert [r["size"] for r in table] == [16, 32] and [r["budget"] for r in table] == [512, 1024]
+    assert all(r["kept"] <= r["faces"] == len(f) for r in table) and all(r["iou"] >= 0.95 for r in table)
+    assert "| sphere | 20480 | 32 | 1024 |" in lc.to_markdown(table, 0.99)
