@@ -98,3 +98,18 @@ def test_the_lod_study_reports_what_lod_keeps():
     assert [r["size"] for r in table] == [16, 32] and [r["budget"] for r in table] == [512, 1024]
     assert all(r["kept"] <= r["faces"] == len(f) for r in table) and all(r["iou"] >= 0.95 for r in table)
     assert "| sphere | 20480 | 32 | 1024 |" in lc.to_markdown(table, 0.99)
+
+
+def test_the_lod_accuracy_study_evaluates_one_checkpoint_per_budget(tmp_path):
+    """``scripts/studies/lod_accuracy.py`` on a one-epoch tiny run: one row per setting, the same
+    weights (without LOD the study's accuracy is the run's own test accuracy)."""
+    from conftest import tiny_config as tiny
+    from mvtn_exp.engine import train
+    from studies import study
+
+    m = train(tiny(str(tmp_path / "cache"), epochs=1, **{"renderer.mode": "hard"}), tmp_path / "run")
+    la = study("lod_accuracy")
+    table = la.rows(tmp_path / "run" / "best.pt", "test", (None, {"lod_faces_per_pixel": 0.01, "lod_min_iou": 0.0}))
+    assert [r["lod"] for r in table] == ["false", "true"] and table[1]["budget"] == 16
+    assert abs(table[0]["acc"] - m["test_acc"]) < 1e-9 and table[0]["n"] == m["test_size"]
+    assert "| true | 0.01 per pixel, unchecked | 16 |" in la.to_markdown(table)
