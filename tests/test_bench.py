@@ -182,3 +182,13 @@ def test_step_ratio_bench_times_both_sides_with_the_trainers_step(tmp_path):
         assert r["learned_selector"] > 0 and 0 < r["render_share"] < 1 and r["ratio"] > 0
     table = step_ratio.to_markdown(rows, "t")
     assert table.count("\n| ") == 3 and "| 2 | " in table
+
+
+def test_step_ratio_overrides_of_the_learned_side_leave_the_fixed_side_alone(tmp_path):
+    """``learned`` overrides reach the learned side only (a key the fixed selector lacks is fine)."""
+    from mvtn_exp.bench import step_ratio
+
+    rows = step_ratio.measure([f"dataset.root={tmp_path}", "dataset.num_per_class=[4,2,2]", "image_size=32", "batch_size=4",
+                               "logger=none"], views=(1,), rounds=1, batches=1,
+                              learned=["selector=mvtn_poi", "selector.gain=16"])
+    assert rows[0]["selector"] == "mvtn_poi" and rows[0]["fixed_selector"] < 0.2 * rows[0]["learned_selector"]

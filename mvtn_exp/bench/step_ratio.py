@@ -15,8 +15,9 @@ defaults: 16 shapes x M views x 64 px, soft smooth). Epoch time is steps times s
 validation pass that is about the same for both sides, so the step ratio bounds the epoch ratio
 from above.
 
-Run: ``python -m mvtn_exp.bench.step_ratio [--views 1 4] [--rounds 5] [--batches 6] [overrides...]``
-(Markdown table on stdout).
+Run: ``python -m mvtn_exp.bench.step_ratio [--views 1 4] [--rounds 5] [--batches 6] [--learned 'OVERRIDES']
+[overrides...]`` (Markdown table on stdout); ``--learned`` overrides apply to the learned side only
+(e.g. ``--learned 'selector.hypotheses=1 selector.race_epochs=0'``: a step after the race).
 """
 from __future__ import annotations
 
@@ -41,8 +42,8 @@ class _NoLog:
         pass
 
 
-def _side(overrides: list[str], views: int, fixed: bool, batches_n: int, seed: int) -> dict:
-    cfg = compose_train_config(overrides + [f"views={views}"] + (["selector=spherical"] if fixed else []))
+def _side(overrides: list[str], views: int, fixed: bool, batches_n: int, seed: int, learned: list[str] = ()) -> dict:
+    cfg = compose_train_config(overrides + [f"views={views}"] + (["selector=spherical"] if fixed else list(learned)))
     cfg.logger.progress = False
     seed_everything(seed)
     ds = make_datasets(cfg)["train"]
@@ -68,11 +69,13 @@ def _run(side: dict) -> dict:
     return timer.means()
 
 
-def measure(overrides: list[str], views=(1, 4), rounds: int = 5, batches: int = 6, seed: int = 0) -> list[dict]:
-    """One row per M: median seconds per step of each side (total and stages) over ``rounds``."""
+def measure(overrides: list[str], views=(1, 4), rounds: int = 5, batches: int = 6, seed: int = 0,
+            learned: list[str] = ()) -> list[dict]:
+    """One row per M: median seconds per step of each side (total and stages) over ``rounds``;
+    ``learned``: overrides of the learned side alone."""
     rows = []
     for M in views:
-        sides = {name: _side(overrides, M, name == "fixed", batches, seed) for name in SIDES}
+        sides = {name: _side(overrides, M, name == "fixed", batches, seed, learned) for name in SIDES}
         for s in sides.values():
             _run(s)  # warm-up round, not counted
         for r in range(rounds):
@@ -110,12 +113,15 @@ def main(argv=None) -> None:
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--batches", type=int, default=6, help="training steps per side per round")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--learned", default="", metavar="'OVERRIDES'", help="overrides of the learned side alone")
     p.add_argument("overrides", nargs="*", help="mvtn-train overrides (key=value), applied to both sides")
     args = p.parse_args(argv)
-    rows = measure(args.overrides + ["logger=none"], args.views, args.rounds, args.batches, args.seed)
+    learned = args.learned.split()
+    rows = measure(args.overrides + ["logger=none"], args.views, args.rounds, args.batches, args.seed, learned)
     title = (f"learned ({rows[0]['selector']}) against fixed (spherical) views, {args.rounds} rounds x "
              f"{rows[0]['steps_per_round']} steps each, medians, {torch.get_num_threads()} threads; "
-             f"overrides: {' '.join(args.overrides) or '(defaults)'}")
+             f"overrides: {' '.join(args.overrides) or '(defaults)'}"
+             + (f"; learned side: {' '.join(learned)}" if learned else ""))
     print(to_markdown(rows, title), flush=True)
 
 
