@@ -33,7 +33,7 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
-from ..selectors.hypotheses import split_images, split_views
+from ..selectors.hypotheses import join_views, split_images
 from . import distributed, seeding
 
 
@@ -62,9 +62,7 @@ def smoothed_view_gradient(render_loss: Callable[[Tensor, Tensor, Tensor], Tenso
     """The antithetic estimate of dL_sigma/du (module docstring) for every shape and view.
 
     render_loss: ``(azim, elev, dist) [B, M] -> per-shape loss [B]`` (called 2 * pairs times, under
-    no_grad); one with ``batched = True`` (``model_render_loss``) takes all ``2 * pairs`` probes at
-    once, ``[2 * pairs, B, M] -> [2 * pairs, B]`` (one render, one pass of C). views:
-    ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world units; detached).
+    no_grad). views: ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world units; detached).
     Returns ``(g_azim, g_elev)``, each ``[B, M]``: loss per degree of each view's azimuth / elevation.
     """
     if pairs < 1 or not sigma > 0:
@@ -72,17 +70,13 @@ def smoothed_view_gradient(render_loss: Callable[[Tensor, Tensor, Tensor], Tenso
     azim, elev, dist = (v.detach() for v in views)
     g_azim, g_elev = torch.zeros_like(azim), torch.zeros_like(elev)
     with torch.no_grad():
-        eps = [torch.randn((2, *azim.shape), generator=generator, dtype=torch.float64).to(azim) for _ in range(int(pairs))]
-        probes = [(azim + sign * sigma * e[0], elev + sign * sigma * e[1]) for e in eps for sign in (1.0, -1.0)]
-        if getattr(render_loss, "batched", False):
-            losses = render_loss(torch.stack([a for a, _ in probes]), torch.stack([e for _, e in probes]),
-                                 dist.expand(len(probes), *dist.shape))
-        else:
-            losses = [render_loss(a, e, dist) for a, e in probes]
-        for k, e in enumerate(eps):
-            w = ((losses[2 * k] - losses[2 * k + 1]) / (2.0 * sigma * pairs)).to(azim)[:, None]  # [B, 1]
-            g_azim += w * e[0]
-            g_elev += w * e[1]
+        for _ in range(int(pairs)):
+            eps = torch.randn((2, *azim.shape), generator=generator, dtype=torch.float64).to(azim)
+            plus = render_loss(azim + sigma * eps[0], elev + sigma * eps[1], dist)
+            minus = render_loss(azim - sigma * eps[0], elev - sigma * eps[1], dist)
+            w = ((plus - minus) / (2.0 * sigma * pairs)).to(azim)[:, None]  # [B, 1]
+            g_azim += w * eps[0]
+            g_elev += w * eps[1]
     return g_azim, g_elev
 
 
@@ -91,27 +85,14 @@ def model_render_loss(model, batch: dict, labels: Tensor, per_shape_loss: Callab
     """``render_loss`` for ``smoothed_view_gradient``: R then C of ``model`` (an ``MVTN``) in eval mode.
 
     hypotheses H > 1: the views come as ``[B * H, M]`` (``selectors.hypotheses.split_views``), each
-    hypothesis's M views are classified as a shape of their own, and ``labels`` are ``[B * H]``.
-    Batched: views ``[n, B * H, M]`` (n probes) are rendered as ``n * H * M`` views of each of the
-    B shapes in one call, and C classifies each probe's M views as a shape of its own, in one pass;
-    returns ``[n, B * H]``. (Eval mode: each sample's result does not depend on the others.)"""
-    H = hypotheses
-
+    hypothesis's M views are classified as a shape of their own, and ``labels`` are ``[B * H]``."""
     def render_loss(azim: Tensor, elev: Tensor, dist: Tensor) -> Tensor:
-        stacked = azim.dim() == 3
-        n = azim.shape[0] if stacked else 1
-        B = azim.shape[-2] // H
-        M = azim.shape[-1]
-        # per shape b its views as [n probes, H hypotheses, M]: rows (b, probe, hypothesis) after the split
-        per_shape = tuple(v.reshape(n, B, H, M).transpose(0, 1).reshape(B, n * H * M) for v in (azim, elev, dist))
+        views = (azim, elev, dist) if hypotheses == 1 else join_views((azim, elev, dist), hypotheses)
         with eval_mode(model):
-            images = model.render(batch, *per_shape)
-            logits, _ = model.mvnet(split_images(images, n * H), split_views(per_shape, n * H))
-        rows = labels.view(B, 1, H).expand(B, n, H).reshape(-1)
-        loss = per_shape_loss(logits, rows).view(B, n, H).transpose(0, 1).reshape(n, B * H)
-        return loss if stacked else loss[0]
-
-    render_loss.batched = True
+            images = model.render(batch, *views)
+            logits, _ = (model.mvnet(images, views) if hypotheses == 1
+                         else model.mvnet(split_images(images, hypotheses), (azim, elev, dist)))
+        return per_shape_loss(logits, labels)
     return render_loss
 
 
