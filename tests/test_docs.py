@@ -297,9 +297,13 @@ def check_python(argv, capsys):
         found = False
     if not found:
         return f"python -m {module}: no such module"
-    overrides = [a for a in argv[2:] if "=" in a and not a.startswith("-")]
-    if module.startswith("mvtn_exp.") and overrides:  # probes that take mvtn-train's overrides
-        return check_train(overrides, capsys)
+    rest = argv[2:]
+    # a --flag's value is not an override (``--learned 'k=v ...'``: the learned side's, checked with the rest)
+    overrides = [a for i, a in enumerate(rest) if "=" in a and not a.startswith("-")
+                 and not (i and rest[i - 1].startswith("--") and "=" not in rest[i - 1])]
+    learned = [v for i, v in enumerate(rest[1:]) if rest[i] == "--learned"]
+    if module.startswith("mvtn_exp.") and (overrides or learned):  # probes that take mvtn-train's overrides
+        return check_train(overrides + [o for v in learned for o in v.split()], capsys)
     return None
 
 
