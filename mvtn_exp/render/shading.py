@@ -91,16 +91,18 @@ def softmax_blend(colors, dist, zbuf, owner, alpha, zfar, znear, background, *, 
 
 def _ranks(slot: torch.Tensor, K: int):
     """Packed slots ``[S]`` (flat indices into ``[P, K]``, ascending) -> per rank k < K the
-    positions in ``slot`` of the slots of rank k, and their pixels (``[n_k]`` each; a pixel's
-    slots fill from rank 0, so n_0 >= n_1 >= ...)."""
+    positions in ``slot`` of the slots of rank k, and their pixels (``[n_k]`` each). A pixel's slots
+    fill from rank 0 and lie side by side, so rank k's are its rank-0 position plus k, for the pixels
+    with more than k slots (one pass over the slots, then passes over the pixels)."""
     with torch.no_grad():
-        rank = slot % K
-        pix = torch.div(slot, K, rounding_mode="floor")
+        first = torch.nonzero(slot % K == 0).squeeze(1)
+        count = torch.diff(first, append=first.new_tensor([len(slot)]))
+        pix = torch.div(slot.index_select(0, first), K, rounding_mode="floor")
     for k in range(K):
-        at = torch.nonzero(rank == k).squeeze(1)
-        if len(at) == 0:
+        has = torch.nonzero(count > k).squeeze(1)
+        if len(has) == 0:
             return
-        yield at, pix.index_select(0, at)
+        yield first.index_select(0, has) + k, pix.index_select(0, has)
 
 
 def _ones_on_graph(alpha: torch.Tensor, P: int) -> torch.Tensor:
