@@ -188,7 +188,11 @@ def test_step_ratio_overrides_of_the_learned_side_leave_the_fixed_side_alone(tmp
     """``learned`` overrides reach the learned side only (a key the fixed selector lacks is fine)."""
     from mvtn_exp.bench import step_ratio
 
-    rows = step_ratio.measure([f"dataset.root={tmp_path}", "dataset.num_per_class=[4,2,2]", "image_size=32", "batch_size=4",
-                               "logger=none"], views=(1,), rounds=1, batches=1,
-                              learned=["selector=mvtn_poi", "selector.gain=16"])
-    assert rows[0]["selector"] == "mvtn_poi" and rows[0]["fixed_selector"] < 0.2 * rows[0]["learned_selector"]
+    common = [f"dataset.root={tmp_path}", "dataset.num_per_class=[4,2,2]", "image_size=32", "batch_size=4", "logger=none"]
+    learned = ["selector=mvtn_poi", "selector.gain=16"]
+    fixed = step_ratio._side(common, 1, True, 1, 0, learned)["cfg"]
+    mine = step_ratio._side(common, 1, False, 1, 0, learned)["cfg"]
+    assert fixed.selector.name == "spherical" and not hasattr(fixed.selector, "gain")
+    assert mine.selector.name == "mvtn_poi" and mine.selector.gain == 16
+    rows = step_ratio.measure(common, views=(1,), rounds=1, batches=1, learned=learned)
+    assert rows[0]["selector"] == "mvtn_poi"
