@@ -28,6 +28,7 @@ import json
 import math
 from pathlib import Path
 
+from .compare import mean_sd
 from .sweep import _override_values, _setting, collect, failed_jobs
 
 COST_FIELDS = ("infer_ms_per_shape", "train_seconds_per_shape", "train_peak_mib", "infer_peak_mib",
@@ -75,11 +76,6 @@ def _number(v: str):
         return None
 
 
-def _mean_std(values: list[float]) -> tuple[float, float]:
-    mean = sum(values) / len(values)
-    return mean, (math.sqrt(sum((a - mean) ** 2 for a in values) / (len(values) - 1)) if len(values) > 1 else 0.0)
-
-
 def settings(rows: list[dict], metric: str = "test_acc") -> tuple[list[dict], list[str]]:
     """Rows per setting (finished jobs only) and the swept keys (overridden keys whose value varies).
     ``acc`` / ``acc_std``: ``metric``'s mean and sample std over the setting's runs (the front's axis);
@@ -94,8 +90,8 @@ def settings(rows: list[dict], metric: str = "test_acc") -> tuple[list[dict], li
     swept = [k for k in keys if len({v.get(k, "") for v in values.values()}) > 1] or keys
     out = []
     for s, members in groups.items():
-        mean, std = _mean_std([float(r["test_acc"]) for r in members])
-        acc, acc_std = _mean_std([float(r[metric]) for r in members])
+        mean, std = mean_sd([float(r["test_acc"]) for r in members])
+        acc, acc_std = mean_sd([float(r[metric]) for r in members])
         row = {"setting": s, **{k: values[s].get(k, "") for k in swept}, "seeds": len(members),
                "test_acc": mean, "test_acc_std": std, "acc": acc, "acc_std": acc_std}
         row.update({k: sum(float(r[k]) for r in members) / len(members) for k in COST_FIELDS})

@@ -279,13 +279,8 @@ def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K
         return Selection(empty, torch.zeros(0, K, dtype=torch.long, device=device), empty if keep_rest else None,
                          empty if keep_rest else None, 0)
     if K == 1 and not keep_rest:
-        zmin = torch.full((num_pixels,), float("inf"), dtype=score.dtype, device=device)
-        zmin.scatter_reduce_(0, pix, score, "amin")
-        win = score == zmin[pix]
-        best = torch.full((num_pixels,), torch.iinfo(torch.long).max, dtype=torch.long, device=device)
-        best.scatter_reduce_(0, pix[win], prim[win], "amin")
-        active = torch.nonzero(best != torch.iinfo(torch.long).max).squeeze(1)
-        return Selection(active, best[active].unsqueeze(1))
+        active, _, best = nearest_one(pix, score, prim, num_pixels)
+        return Selection(active, best.unsqueeze(1))
     if score.dtype == torch.float32:
         # one int64 key (pixel, order-preserving score bits): a single sort
         order = torch.sort((pix << 32) | _sortable(score), stable=True).indices
