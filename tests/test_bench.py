@@ -196,3 +196,37 @@ def test_step_ratio_overrides_of_the_learned_side_leave_the_fixed_side_alone(tmp
     assert mine.selector.name == "mvtn_poi" and mine.selector.gain == 16
     rows = step_ratio.measure(common, views=(1,), rounds=1, batches=1, learned=learned)
     assert rows[0]["selector"] == "mvtn_poi"
+
+
+def test_paired_times_alternate_which_side_goes_first():
+    from mvtn_exp.bench.render_bench import paired_times
+
+    calls = []
+    ta, tb = paired_times(lambda: calls.append("a"), lambda: calls.append("b"), torch.device("cpu"), repeats=5,
+                          budget_s=10.0)
+    assert len(ta) == len(tb) == 5
+    # warm-ups, round 1 (a first), then b first, a first, ...
+    assert "".join(calls) == "ab" + "ab" + "ba" + "ab" + "ba" + "ab"
+    ta, tb = paired_times(lambda: time.sleep(0.02), lambda: None, torch.device("cpu"), repeats=50, budget_s=0.01)
+    assert len(ta) == len(tb) == 3  # at least 3 rounds, whatever the budget
+
+
+def test_targets_take_their_ratios_from_the_paired_times():
+    """With paired times the Targets rows use them (not the grid's own rows, timed at another moment)."""
+    from mvtn_exp.bench.render_bench import Bench, BenchOptions, targets
+
+    b = Bench(BenchOptions())
+    S, M = b.grid.target_size, b.grid.target_views
+    b.res.resnet.append(dict(images=M, size=S, fwd_bwd_s=[1.0]))
+    for name, K, sh, t in (("torus-20k", 1, "flat", 0.5), ("torus-2k", 1, "flat", 0.1), ("torus-100k", 1, "flat", 0.9)):
+        b.res.grid.append(dict(shape=name, size=S, views=M, K=K, shading=sh, fwd_bwd_s=[t]))
+    rows = {r["target"].split(":")[0]: r for r in targets(b)}
+    hard = rows[f"20k-face mesh, {M} views, {S} px, K=1"]
+    assert hard["status"] == "MISS" and hard["measured"] == pytest.approx(0.5)  # from the grid rows
+    b.res.paired.update(hard=([0.2, 0.21, 0.19], [1.0, 1.1, 0.9]), **{"100k": ([0.15] * 3, [0.1] * 3)})
+    rows = {r["target"]: r for r in targets(b)}
+    hard = next(r for t, r in rows.items() if t.startswith(f"20k-face mesh, {M} views, {S} px, K=1"))
+    assert hard["status"] == "PASS" and hard["measured"] == pytest.approx(0.2) and "200.0 ms = 0.200 x" in hard["value"]
+    big = next(r for t, r in rows.items() if "without LOD" in t)
+    assert big["status"] == "PASS" and big["measured"] == pytest.approx(1.5)
+    assert next(r for t, r in rows.items() if "with LOD" in t)["status"].startswith("n/a")

@@ -183,3 +183,30 @@ def test_a_side_whose_every_run_failed_is_listed_and_the_rest_compared(tmp_path,
     sides = json.loads((tmp_path / "c" / "compare.json").read_text())["groups"][0]["sides"]
     assert [s["label"] for s in sides] == ["selector.name=spherical", "selector.name=poi"]
     assert sides[1]["diff"] == pytest.approx(sum(LEARNED[s] - FIXED[s] for s in FIXED) / 4)
+
+
+def test_ratio_is_the_paired_geometric_mean_with_its_log_interval(tmp_path, capsys):
+    """--ratio train_wall_seconds: side / reference per seed, geometric mean, t interval on the logs;
+    older runs without the number have it from their epoch_seconds."""
+    walls = {0: (100.0, 130.0), 1: (80.0, 120.0), 2: (120.0, 150.0), 3: (90.0, 99.0)}
+    for s, (f, l) in walls.items():
+        _run(tmp_path / "f", f"s{s}", FIXED[s], seed=s, selector="spherical")
+        d = _run(tmp_path / "l", f"s{s}", LEARNED[s], seed=s, selector="poi")
+        for folder, wall in ((tmp_path / "f" / f"s{s}", f), (d, l)):
+            m = json.loads((folder / "metrics.json").read_text())
+            m.update({"epoch_seconds": [wall / 4] * 4} if s % 2 else {"train_wall_seconds": wall})
+            (folder / "metrics.json").write_text(json.dumps(m))
+    main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c"), "--ratio", "train_wall_seconds"])
+    out = capsys.readouterr().out
+    logs = [math.log(l / f) for f, l in walls.values()]
+    m, half = sum(logs) / 4, stats.t.ppf(0.975, 3) * stats.sem(logs)
+    assert f"| {math.exp(m):.2f} x [{math.exp(m - half):.2f}, {math.exp(m + half):.2f}] |" in out
+    assert "train_wall_seconds / reference [95%]" in out and "| 1 (reference) |" in out
+    side = json.loads((tmp_path / "c" / "compare.json").read_text())["groups"][0]["sides"][1]
+    assert side["ratios"]["train_wall_seconds"]["ratio"] == pytest.approx(math.exp(m))
+    m = json.loads((tmp_path / "l" / "s0" / "metrics.json").read_text())
+    m["train_wall_seconds"] = 0.0
+    (tmp_path / "l" / "s0" / "metrics.json").write_text(json.dumps(m))
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c"), "--ratio", "train_wall_seconds"])
+    assert e.value.code == 2 and "must be > 0" in capsys.readouterr().err

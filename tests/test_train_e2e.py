@@ -59,6 +59,7 @@ def test_artifacts_and_metrics(full_run):
     assert conf.shape == (12, 12) and int(conf.sum()) == m["test_size"] == 12 * 2
     assert abs(float(conf.diag().sum()) / m["test_size"] - m["test_acc"]) < 1e-12
     assert m["epochs"] == 2 and len(m["epoch_seconds"]) == 2 and m["skipped_steps"] == 0
+    assert m["train_wall_seconds"] == pytest.approx(sum(m["epoch_seconds"])) and m["train_wall_seconds"] > 0
     last = torch.load(run / "last.pt", weights_only=False)
     assert last["epoch"] == 2 and last["config"]["views"] == 2  # epochs completed, as metrics.json counts
     assert last["best_epoch"] == m["best_epoch"] and last["format"] == 3

@@ -18,7 +18,8 @@ seconds runs ``max(1, min(repeats, floor(time_budget_s / t)))`` times, which kee
 few minutes on two CPU cores. Further sections: ResNet-18 forward+backward on the same number of
 224 px images (the yardstick of the targets), a dense brute-force K=1 face search against
 ``search_faces`` where it fits, level of detail (LOD) at 224 px / 12 views, the extra peak memory of a
-batch of 8 shapes x 12 views x 224 px, and the targets with PASS/MISS.
+batch of 8 shapes x 12 views x 224 px, and the targets with PASS/MISS, whose time ratios come from
+both sides timed again in alternation (``paired_times``).
 """
 from __future__ import annotations
 
@@ -131,6 +132,10 @@ def prims_of(shape) -> int:
     return int(shape.faces_per_shape[0]) if isinstance(shape, Meshes) else int(shape.points_per_shape[0])
 
 
+# the time targets' renderer sides, timed against ResNet-18 in alternation: (shape, K, shading)
+PAIRED_TARGETS = {"hard": ("torus-20k", 1), "smooth": ("torus-20k", 8, "smooth"), "flat": ("torus-20k", 8, "flat"),
+                  "points": ("points-2048", 8)}
+
 # LOD budgets measured: None is the renderer's default rule (faces per pixel row, silhouette-checked),
 # the others the former rule (faces per image pixel)
 LOD_FACES_PER_PIXEL = (None, 0.5, 0.25, 0.125)
@@ -155,6 +160,21 @@ def timed(fn: Callable[[], object], device: torch.device) -> float:
     fn()
     _sync(device)
     return time.perf_counter() - t0
+
+
+def paired_times(a: Callable[[], object], b: Callable[[], object], device: torch.device, repeats: int,
+                 budget_s: float) -> tuple[list[float], list[float]]:
+    """Seconds of ``a`` and ``b`` timed in alternation (one warm-up each; the side that goes first
+    alternates), at least 3 rounds and up to ``repeats`` within ``budget_s`` a round: a load change
+    hits both sides alike, so the ratio of their medians is a same-run ratio."""
+    a(), b()
+    ta, tb = [timed(a, device)], [timed(b, device)]
+    n = max(3, min(int(repeats), int(budget_s / max(ta[0] + tb[0], 1e-9))))
+    while len(ta) < n:
+        first, second = ((a, ta), (b, tb)) if len(ta) % 2 == 0 else ((b, tb), (a, ta))
+        for fn, out in (first, second):
+            out.append(timed(fn, device))
+    return ta, tb
 
 
 def time_runs(fn: Callable[[], object], device: torch.device, repeats: int, budget_s: float) -> list[float]:
@@ -213,6 +233,7 @@ class Results:
     dense: list = field(default_factory=list)
     lod: list = field(default_factory=list)
     batch8: list = field(default_factory=list)
+    paired: dict = field(default_factory=dict)  # target key -> (numerator s, denominator s), timed alternately
     edges: list = field(default_factory=list)
     modules: list = field(default_factory=list)
     scaling: list = field(default_factory=list)
@@ -353,6 +374,30 @@ class Bench:
                                  views=M, K=1, no_lod_fwd_bwd_s=t_ref, lod_fwd_bwd_s=t_lod, simplify_s=simplify_s,
                                  first_call_s=first_s, image_mae=mae, silhouette_iou=iou))
 
+    def job_paired_targets(self) -> None:
+        """Each time target's two sides (the renderer and ResNet-18, or the 100k and the 2k mesh)
+        timed again in alternation (``paired_times``): the Targets table's ratios are same-run ratios."""
+        g = self.grid
+        S, M = g.target_size, g.target_views
+        torch.manual_seed(self.opts.seed)
+        net = resnet18(num_classes=40).to(self.dev).train()
+        x = torch.rand(M, 3, S, S).to(self.dev)
+
+        def resnet_fwd_bwd():
+            net.zero_grad(set_to_none=True)
+            net(x).sum().backward()
+
+        def render(name, K, shading="flat", **extra):
+            shape = self.shape(name)
+            return render_fns(renderer_for(shape, S, K, shading, **extra), shape, Views(M, 1, self.dev))[1]
+
+        sides = {key: (lambda k=key: render(*PAIRED_TARGETS[k]), resnet_fwd_bwd) for key in ("hard", "smooth", "flat", "points")}
+        small = render("torus-2k", 1)
+        sides["100k"] = (lambda: render("torus-100k", 1), small)
+        sides["100k_lod"] = (lambda: render("torus-100k", 1, lod=True), small)
+        for key, (make, den) in sides.items():
+            self.res.paired[key] = paired_times(make(), den, self.dev, self.opts.repeats, 2 * self.opts.time_budget_s)
+
     def job_batch8(self, kind: str) -> None:
         g = self.grid
         size, M, B = g.target_size, g.target_views, 8
@@ -390,6 +435,8 @@ class Bench:
                 for name in g.meshes for size in g.sizes for M in g.views]
         out += [(f"lod {name} {'default' if fpp is None else f'{fpp} faces/px'}", lambda n=name, f=fpp: self.job_lod(n, f))
                 for name in g.lod_meshes for fpp in LOD_FACES_PER_PIXEL]
+        if not self.opts.quick:  # (the quick grid has no target configuration)
+            out.append(("targets: both sides timed in alternation", self.job_paired_targets))
         out.append(("soft edge error", self.job_edge_error))
         if self.opts.modules:
             out.append(("module table", self.job_modules))
@@ -450,34 +497,41 @@ def targets(bench: Bench) -> list[dict]:
     res = bench.res
     quick = "not in this grid (quick=true)" if bench.opts.quick else "not measured"
     net = next((r for r in res.resnet if r["images"] == M and r["size"] == S), None)
-    net_ms = med_ms(net["fwd_bwd_s"]) if net else None
     out = []
 
-    def vs_resnet(title, row, factor):
-        if row is None or net_ms is None:
+    def pair(key, num_row, den_s):
+        """(numerator s, denominator s): timed in alternation when measured so, else from their own rows."""
+        if key in res.paired:
+            return res.paired[key]
+        return (num_row["fwd_bwd_s"], den_s) if num_row is not None and den_s is not None else None
+
+    def vs_resnet(title, key, row, factor):
+        times = pair(key, row, net["fwd_bwd_s"] if net else None)
+        if times is None:
             return _target(title, "-", f"<= {factor:g} x ResNet-18", None, quick)
-        ms = med_ms(row["fwd_bwd_s"])
+        ms, net_ms = med_ms(times[0]), med_ms(times[1])
         ratio = ms / net_ms
         return _target(title, f"{ms:.1f} ms = {ratio:.3f} x ResNet-18 ({net_ms:.1f} ms)",
                        f"<= {factor:g} x ({factor * net_ms:.1f} ms)", ratio <= factor, value=ratio, limit=factor)
 
-    out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, K=1: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
+    out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, K=1: fwd+bwd vs ResNet-18 fwd+bwd on {M} images", "hard",
                          bench.find_grid("torus-20k", S, M, 1), 0.25))
     for shading, factor in (("smooth", 1.0), ("flat", 1.0)):
         out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
-                             bench.find_grid("torus-20k", S, M, 8, shading), factor))
-    out.append(vs_resnet(f"2048 points, {M} views, {S} px, K=8: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
+                             shading, bench.find_grid("torus-20k", S, M, 8, shading), factor))
+    out.append(vs_resnet(f"2048 points, {M} views, {S} px, K=8: fwd+bwd vs ResNet-18 fwd+bwd on {M} images", "points",
                          bench.find_grid("points-2048", S, M, 8), 0.1))
 
     small, big = bench.find_grid("torus-2k", S, M, 1), bench.find_grid("torus-100k", S, M, 1)
     lod_big = next((r for r in res.lod if r["shape"] == "torus-100k" and r["fpp"] == LOD_FACES_PER_PIXEL[0]), None)
-    for label, big_s in (("without LOD", big["fwd_bwd_s"] if big else None),
-                         ("with LOD (the renderer's default)", lod_big["lod_fwd_bwd_s"] if lod_big else None)):
+    lod_row = dict(fwd_bwd_s=lod_big["lod_fwd_bwd_s"]) if lod_big else None
+    for key, label, row in (("100k", "without LOD", big), ("100k_lod", "with LOD (the renderer's default)", lod_row)):
         title = f"100k-face vs 2k-face mesh, {S} px, {M} views, K=1 fwd+bwd, {label}"
-        if small is None or big_s is None:
+        times = pair(key, row, small["fwd_bwd_s"] if small else None)
+        if times is None:
             out.append(_target(title, "-", "<= 2 x", None, quick))
             continue
-        a, b = med_ms(big_s), med_ms(small["fwd_bwd_s"])
+        a, b = med_ms(times[0]), med_ms(times[1])
         note = " (2k is under the LOD budget: unchanged)" if label.startswith("with LOD") else ""
         out.append(_target(title, f"{a:.1f} ms / {b:.1f} ms = {a / b:.2f} x{note}", "<= 2 x", a / b <= 2.0, value=a / b, limit=2.0))
 
@@ -620,7 +674,10 @@ def to_markdown(res: Results) -> str:
 
         parts.append(scaling_markdown(res.scaling, o["quick"]) + "\n\nPlotted in `scaling.png` beside this file.")
     rows = [[t["target"], t["value"], t["limit"], t["status"]] for t in res.targets]
-    parts.append("## Targets\n\n" + md_table(["target", "measured", "limit", "status"], rows))
+    paired = (f" Times: each target's two sides timed in alternation in one job (the median of "
+              f"{min(len(t[0]) for t in res.paired.values())}+ rounds each), so a load change hits both alike."
+              if res.paired else " Times: from the grid and ResNet-18 rows above.")
+    parts.append("## Targets\n\n" + md_table(["target", "measured", "limit", "status"], rows) + "\n\n" + paired.strip())
     return "\n\n".join(parts) + "\n"
 
 

@@ -138,6 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a data / split / epochs key the sides may differ in (the key under comparison)")
     p.add_argument("--metric", default="test_acc", help="metrics.json number to compare (best_val_acc: choose on validation)")
     p.add_argument("--also", action="append", default=[], metavar="METRIC", help="more metrics.json numbers to show (mean ± std)")
+    p.add_argument("--ratio", action="append", default=[], metavar="METRIC",
+                   help="metrics.json numbers (times, costs: train_wall_seconds) shown as each side's paired ratio "
+                        "to the reference")
     p.add_argument("--run", action="append", metavar="'OVERRIDES'", help="one side to train: its mvtn-train overrides")
     p.add_argument("--seeds", help="with --run: the seeds every side trains at, e.g. 0-9")
     p.add_argument("--jobs", type=int, default=1, help="with --run: runs at once (one torch thread each when > 1)")
@@ -170,7 +173,8 @@ def main(argv=None) -> None:
             folders = [Path(d) for d in args.items]
             out = Path(args.out) if args.out else (folders[0] if len(folders) == 1 else
                                                    Path(f"outputs/compare/{time.strftime('%Y-%m-%d_%H-%M-%S')}"))
-        result = compare(find_runs(folders), args.metric, args.where, args.group, args.key, args.also, args.reference)
+        result = compare(find_runs(folders), args.metric, args.where, args.group, args.key, args.also, args.reference,
+                         args.ratio)
         if args.run:
             _relabel(result, out, args.run)
         md, _ = write(result, out)

@@ -10,7 +10,9 @@ reference side (the first) on the seeds both have:
 - per side: mean +- sample std (n - 1) over the seeds;
 - per side against the reference: the mean paired difference in points with its 95% paired-t
   interval (Student's t with n - 1 degrees of freedom on the per-seed differences) and on how many
-  seeds the side is ahead, tied and behind.
+  seeds the side is ahead, tied and behind;
+- for costs (``ratios``, e.g. ``train_wall_seconds``): each side's paired ratio to the reference,
+  the geometric mean of the per-seed ratios with the paired-t interval of their logarithms.
 
 A comparison is refused (``CompareError``, one line naming the key) when the two sides differ in
 data, split or epochs (``PROTECTED``) unless that key is named as the one under comparison, when
@@ -250,8 +252,14 @@ def mean_sd(x: list[float]) -> tuple[float, float]:
     return m, (math.sqrt(sum((v - m) ** 2 for v in x) / (len(x) - 1)) if len(x) > 1 else 0.0)
 
 
+# numbers derived from what older runs' metrics.json hold
+DERIVED = {"train_wall_seconds": lambda m: sum(m["epoch_seconds"]) if isinstance(m.get("epoch_seconds"), list) else None}
+
+
 def _value(run: Run, metric: str) -> float:
     v = run.metrics.get(metric)
+    if v is None and metric in DERIVED:
+        v = DERIVED[metric](run.metrics)
     if not isinstance(v, (int, float)) or isinstance(v, bool):
         raise CompareError(f"{run.path / 'metrics.json'}: no number under {metric!r} "
                            f"(numbers there: {', '.join(k for k, x in run.metrics.items() if isinstance(x, (int, float)))})")
@@ -286,11 +294,23 @@ def _seeds(s: set) -> str:
     return ", ".join(map(str, sorted(s, key=lambda x: (str(type(x)), x))))
 
 
+def ratio(ref: list[float], side: list[float]) -> dict:
+    """``side / ref`` over paired seeds: the geometric mean of the per-seed ratios and its 95% paired-t
+    interval (on the logarithms); every value must be > 0."""
+    if min(ref + side) <= 0:
+        raise CompareError("--ratio: the metric must be > 0 on every run to form ratios")
+    logs = [math.log(b / a) for a, b in zip(ref, side)]
+    m, sd = mean_sd(logs)
+    half = stats.t.ppf(0.975, len(logs) - 1) * sd / math.sqrt(len(logs))
+    return {"ratio": math.exp(m), "ratio_low": math.exp(m - half), "ratio_high": math.exp(m + half)}
+
+
 def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, keys=(), also=(),
-            reference: str | None = None) -> dict:
-    """The comparison as a dict (what ``compare.json`` holds); see the module docstring."""
+            reference: str | None = None, ratios=()) -> dict:
+    """The comparison as a dict (what ``compare.json`` holds); see the module docstring. ``ratios``:
+    metrics (times, costs) also given as each side's paired ratio to the reference (``ratio``)."""
     result = {"metric": metric, "interval": "95% paired t (Student's t, n - 1 df, on per-seed differences)",
-              "group": group, "groups": [],
+              "group": group, "groups": [], "ratios": list(ratios),
               "not_finished": [{"path": str(r.path), "status": r.status, "seed": r.seed, "error": r.error}
                                for r in runs if r.status != "ok"]}
     for g, sides in make_sides(runs, where, group, reference).items():
@@ -314,7 +334,10 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
             entry.update(seeds=seeds, values=values, mean=mean_sd(values)[0], sd=mean_sd(values)[1],
                          paths=[str(side.runs[s].path) for s in seeds],
                          also={k: mean_sd([_value(side.runs[s], k) for s in seeds]) for k in also},
-                         also_values={k: [_value(side.runs[s], k) for s in seeds] for k in also})
+                         also_values={k: [_value(side.runs[s], k) for s in seeds] for k in also},
+                         ratios={k: None if side is ref else ratio([_value(ref.runs[s], k) for s in seeds],
+                                                                   [_value(side.runs[s], k) for s in seeds])
+                                 for k in ratios})
             rows.append(entry)
         result["groups"].append({"group": g, "sides": rows})
     return result
@@ -322,6 +345,10 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
 
 def _cell(mean: float, sd: float) -> str:
     return f"{mean:.3f} ± {sd:.3f}"
+
+
+def _ratio_cell(r) -> str:
+    return "1 (reference)" if r is None else f"{r['ratio']:.2f} x [{r['ratio_low']:.2f}, {r['ratio_high']:.2f}]"
 
 
 def to_markdown(result: dict) -> str:
@@ -334,16 +361,18 @@ def to_markdown(result: dict) -> str:
         if result["group"]:
             lines += [f"## {result['group']} = {_show(grp['group'])}", ""]
         seeds = sorted({s for side in sides for s in side["seeds"]}, key=lambda x: (str(type(x)), x))
-        also = list(sides[0]["also"])
+        also, ratios = list(sides[0]["also"]), list(sides[0].get("ratios", {}))
         lines += ["| side | seeds | " + metric + " (mean ± std) | " + "".join(f"{k} | " for k in also)
+                  + "".join(f"{k} / reference [95%] | " for k in ratios)
                   + "vs reference (points) | 95% interval | ahead / tied / behind | commit |",
-                  "|---|---|---|" + "---|" * len(also) + "---|---|---|---|"]
+                  "|---|---|---|" + "---|" * (len(also) + len(ratios)) + "---|---|---|---|"]
         for i, s in enumerate(sides):
             vs = ("reference" if i == 0 else f"{100 * s['diff']:+.1f} ± {100 * s['diff_sd']:.1f}")
             ci = "" if i == 0 else f"[{100 * s['low']:+.1f}, {100 * s['high']:+.1f}]"
             wins = "" if i == 0 else f"{s['ahead']} / {s['tied']} / {s['behind']}"
             lines.append(f"| {s['label']} | {len(s['seeds'])} | {_cell(s['mean'], s['sd'])} | "
                          + "".join(f"{_cell(*s['also'][k])} | " for k in also)
+                         + "".join(f"{_ratio_cell(s['ratios'][k])} | " for k in ratios)
                          + f"{vs} | {ci} | {wins} | {', '.join(s['commits']) or '-'} |")
         columns = [(s, None) for s in sides] + [(s, k) for k in also for s in sides]
         lines += ["", f"Per seed ({metric}{', then ' + ', '.join(also) if also else ''}):", "",

@@ -475,6 +475,7 @@ def run_metrics(cfg: TrainConfig, cfg_dict: dict, model, datasets: dict, test: d
         "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
         "best_weights": best_weights, "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
         "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
+        "train_wall_seconds": sum(h["seconds"] for h in history),  # every epoch, resumed ones too
         "step_seconds": timer.means(), "cost": costs,
         **{f"test_{k}": v for k, v in view_report(model, test["azim"], test["elev"]).items()},
         **{f"test_{k}": v for k, v in dataset_view_report(datasets["test"], test).items()},
