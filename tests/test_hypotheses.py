@@ -9,7 +9,7 @@ import torch
 from mvtn_exp.engine import checkpoint, train
 from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.selectors import PointOfInterestSelector, build_selector
-from mvtn_exp.selectors.hypotheses import HypothesisRace, interleave, join_views, split_images, split_views
+from mvtn_exp.selectors.hypotheses import HypothesisRace, join_views, split_images, split_views
 
 from test_train_e2e import tiny
 
@@ -225,81 +225,6 @@ def test_pooled_exploring_run_trains_and_decides(tmp_path):
     assert first["hypothesis_active"] == min(range(2), key=lambda h: first["hypothesis_losses"][h])
     separate = train(tiny(cache, epochs=1, **HYP), tmp_path / "separate")
     assert abs(separate["history"][0]["train_loss"] - first["train_loss"]) > 1e-6
-
-
-def test_interleave_gives_each_shape_one_hypothesis_in_turn():
-    B, H, M = 5, 3, 2
-    views = tuple(torch.randn(B, H * M) for _ in range(3))
-    for step in (0, 1, 7):
-        got, which = interleave(views, H, step)
-        assert got[0].shape == (B, M) and which.tolist() == [(b + step) % H for b in range(B)]
-        for b in range(B):
-            h = int(which[b])
-            assert all(torch.equal(g[b], v[b, h * M:(h + 1) * M]) for g, v in zip(got, views))
-    g = torch.zeros(B, H * M, requires_grad=True)  # the gradient reaches only the chosen columns
-    interleave((g, g, g), H, 0)[0][0].sum().backward()
-    assert g.grad.sum() == B * M and all(g.grad[b, (b % H) * M:(b % H + 1) * M].sum() == M for b in range(B))
-
-
-def test_interleaved_race_compares_unpaired_means():
-    """Each shape under one hypothesis: means over each hypothesis's own shapes, the lead in
-    unpaired standard errors (matching a brute-force Welch z); undecided while a hypothesis has no
-    shape; per_hypothesis=False refuses record_one."""
-    g = torch.Generator().manual_seed(0)
-    which = torch.arange(600) % 3
-    for shift, want in ((1.0, True), (0.05, False)):
-        loss = torch.randn(600, generator=g) + shift * (which != 1)  # hypothesis 1 lower by `shift`
-        race = HypothesisRace(3, per_hypothesis=True)
-        for lo, wh in zip(loss.split(16), which.split(16)):
-            race.record_one(lo, wh)
-        active, means, clear = race.decide(3.0)
-        groups = [loss[which == h].double() for h in range(3)]
-        assert means == pytest.approx([float(x.mean()) for x in groups])
-        assert active == int(torch.tensor(means).argmin())
-        z = [float((groups[h].mean() - groups[active].mean()) / (groups[h].var() / len(groups[h])
-                                                                 + groups[active].var() / len(groups[active])) ** 0.5)
-             for h in range(3) if h != active]
-        assert clear == (min(z) > 3.0) == want, z
-        assert not race.counts.any() and not race.sums.any()
-    race = HypothesisRace(2, per_hypothesis=True)
-    race.record_one(torch.tensor([1.0, 2.0]), torch.tensor([0, 0]))
-    assert race.decide(0.0) == (None, [], False)  # hypothesis 1 unseen: kept for the next decision
-    race.record_one(torch.tensor([0.5]), torch.tensor([1]))
-    assert race.decide(None)[:2] == (1, [1.5, 0.5])
-    with pytest.raises(ValueError, match="per_hypothesis=True"):
-        HypothesisRace(2).record_one(torch.zeros(2), torch.zeros(2, dtype=torch.long))
-
-
-def test_interleaved_race_renders_one_hypothesis_per_shape_and_resumes(tmp_path, monkeypatch):
-    """race_mode=interleaved: every training render is of M views (never H x M), the race is
-    decided on the per-hypothesis means, and an interrupted run resumes exactly."""
-    from mvtn_exp.model import MVTN
-
-    seen = []
-    real = MVTN.render
-
-    def counting(self, batch, azim, *rest):
-        if self.training:
-            seen.append(azim.shape[1])
-        return real(self, batch, azim, *rest)
-
-    cache = str(tmp_path / "cache")
-    cfg = {**HYP, "selector.race_mode": "interleaved", "selector.race_epochs": 2, "selector.race_z": None}
-    monkeypatch.setattr(MVTN, "render", counting)
-    run = train(tiny(cache, epochs=2, **cfg), tmp_path / "run")
-    monkeypatch.setattr(MVTN, "render", real)
-    first, second = run["history"]
-    assert set(seen) == {2} and len(seen) >= 4  # tiny: M = 2
-    assert len(first["hypothesis_losses"]) == 2 and len(second["hypothesis_losses"]) == 2
-    assert second["hypothesis_active"] == min(range(2), key=lambda h: second["hypothesis_losses"][h])
-    state = checkpoint.load(tmp_path / "run" / "last.pt")
-    assert bool(state["model"]["hypotheses.done"]) and not state["model"]["hypotheses.counts"].any()
-    train(tiny(cache, epochs=1, **cfg), tmp_path / "a")
-    resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **cfg), tmp_path / "b")
-    assert resumed["confusion_matrix"] == run["confusion_matrix"]
-    assert abs(resumed["history"][1]["train_loss"] - second["train_loss"]) <= 1e-6
-    pooled = train(tiny(cache, epochs=1, **{**cfg, "selector.race_mode": "pooled"}), tmp_path / "pooled")
-    assert abs(pooled["history"][0]["train_loss"] - first["train_loss"]) > 1e-6
 
 
 def test_descriptor_subsets_feed_only_their_columns():

@@ -266,7 +266,8 @@ class Bench:
         return time_runs(fn, self.dev, self.opts.repeats, self.opts.time_budget_s)
 
     # ------------------------------------------------------------------ jobs
-    def job_resnet(self, M: int, size: int) -> None:
+    def resnet_fn(self, M: int, size: int) -> Callable[[], None]:
+        """ResNet-18 forward+backward on ``M`` random images of ``size`` px (seeded)."""
         torch.manual_seed(self.opts.seed)
         net = resnet18(num_classes=40).to(self.dev).train()
         x = torch.rand(M, 3, size, size).to(self.dev)
@@ -275,6 +276,10 @@ class Bench:
             net.zero_grad(set_to_none=True)
             net(x).sum().backward()
 
+        return fwd_bwd
+
+    def job_resnet(self, M: int, size: int) -> None:
+        fwd_bwd = self.resnet_fn(M, size)
         fwd_bwd()  # warm-up
         t = self.times(fwd_bwd)
         self.res.resnet.append(dict(images=M, size=size, fwd_bwd_s=t))
@@ -379,13 +384,7 @@ class Bench:
         timed again in alternation (``paired_times``): the Targets table's ratios are same-run ratios."""
         g = self.grid
         S, M = g.target_size, g.target_views
-        torch.manual_seed(self.opts.seed)
-        net = resnet18(num_classes=40).to(self.dev).train()
-        x = torch.rand(M, 3, S, S).to(self.dev)
-
-        def resnet_fwd_bwd():
-            net.zero_grad(set_to_none=True)
-            net(x).sum().backward()
+        resnet_fwd_bwd = self.resnet_fn(M, S)
 
         def render(name, K, shading="flat", **extra):
             shape = self.shape(name)

@@ -19,13 +19,6 @@ rendered from then on, once it leads every other by more than ``selector.race_z`
 errors of the paired per-shape differences (the same shapes seen under both: a randomised
 comparison), or after ``selector.race_epochs`` epochs. The sums are cleared every epoch,
 since C changes. The cost is H x the render and C of a step while exploring.
-
-``selector.race_mode=interleaved`` races at the cost of a normal step: each shape is rendered
-under one hypothesis only (shape b of global step t under hypothesis (b + t) mod H, so every
-hypothesis sees every kind of shape), C trains on those renders as on any batch, and each
-hypothesis's mean G loss is taken over its own shapes; the lead is then measured in unpaired
-standard errors (``record_one``, ``per_hypothesis=True``). C sees each hypothesis's views on 1 / H
-of the shapes, so it learns from the one that shows the detail H times more slowly than pooled.
 """
 from __future__ import annotations
 
@@ -42,7 +35,7 @@ class HypothesisRace(nn.Module):
     returns ``(None, [], False)``. ``finish()`` ends the race for good (``done``).
     """
 
-    def __init__(self, hypotheses: int, per_hypothesis: bool = False) -> None:
+    def __init__(self, hypotheses: int) -> None:
         super().__init__()
         if int(hypotheses) < 2:
             raise ValueError(f"HypothesisRace: needs at least 2 hypotheses, got {hypotheses!r}")
@@ -51,8 +44,6 @@ class HypothesisRace(nn.Module):
         self.register_buffer("sums", torch.zeros(H, dtype=torch.float64))
         self.register_buffer("products", torch.zeros(H, H, dtype=torch.float64))  # sum over shapes of l_h l_k
         self.register_buffer("done", torch.zeros((), dtype=torch.bool))
-        if per_hypothesis:  # interleaved: each shape seen under one hypothesis (products: the diagonal only)
-            self.register_buffer("counts", torch.zeros(H, dtype=torch.float64))
 
     @property
     def hypotheses(self) -> int:
@@ -66,48 +57,10 @@ class HypothesisRace(nn.Module):
         self.sums += loss.sum(0)
         self.products += loss.T @ loss
 
-    def record_one(self, loss: Tensor, which: Tensor) -> None:
-        """Interleaved: ``loss [B]`` of each shape under its one hypothesis ``which [B]`` (long)."""
-        if not hasattr(self, "counts"):
-            raise ValueError("HypothesisRace.record_one: built without per_hypothesis=True")
-        if loss.dim() != 1 or which.shape != loss.shape:
-            raise ValueError(f"HypothesisRace.record_one: expected loss [B] and which [B], got {list(loss.shape)}, "
-                             f"{list(which.shape)}")
-        loss, which = loss.detach().to(self.sums), which.to(self.sums.device)
-        self.count += loss.shape[0]
-        self.counts.index_add_(0, which, torch.ones_like(loss))
-        self.sums.index_add_(0, which, loss)
-        self.products.diagonal().index_add_(0, which, loss * loss)
-
-    def _unpaired(self, z: float) -> tuple[int | None, list[float], bool]:
-        """Means over each hypothesis's own shapes; the lead in unpaired standard errors."""
-        n = self.counts
-        if bool((n == 0).any()):
-            return None, [], False
-        means = self.sums / n
-        a = int(means.argmin())
-        clear = False
-        if z is not None and bool((n > 1).all()):
-            var = ((self.products.diagonal() - n * means ** 2) / (n - 1)).clamp_min(0)
-            se = (var / n + var[a] / n[a]).sqrt()
-            others = torch.arange(self.hypotheses, device=means.device) != a
-            clear = bool(((means - means[a])[others] > z * se[others]).all())
-        return a, [float(m) for m in means], clear
-
-    def _clear(self) -> None:
-        for buf in (self.count, self.sums, self.products, getattr(self, "counts", None)):
-            if buf is not None:
-                buf.zero_()
-
     def decide(self, z: float | None = None) -> tuple[int | None, list[float], bool]:
         n = float(self.count)
         if n == 0:
             return None, [], False
-        if hasattr(self, "counts"):
-            out = self._unpaired(z)
-            if out[0] is not None:
-                self._clear()
-            return out
         means = self.sums / n
         a = int(means.argmin())
         clear = False
@@ -118,7 +71,9 @@ class HypothesisRace(nn.Module):
             se = (var / n).sqrt()
             others = torch.arange(self.hypotheses, device=means.device) != a
             clear = bool((diff[others] > z * se[others]).all())
-        self._clear()
+        self.count.zero_()
+        self.sums.zero_()
+        self.products.zero_()
         return a, [float(m) for m in means], clear
 
     def finish(self) -> None:
@@ -126,16 +81,6 @@ class HypothesisRace(nn.Module):
 
     def extra_repr(self) -> str:
         return f"hypotheses={self.hypotheses}"
-
-
-def interleave(views: tuple, hypotheses: int, step: int) -> tuple[tuple, Tensor]:
-    """Each shape's views under its one hypothesis: ``(azim, elev, dist)`` each ``[B, H * M]`` ->
-    (each ``[B, M]``, the hypothesis of each shape ``[B]``: shape b under ``(b + step) mod H``)."""
-    B, HM = views[0].shape
-    M = HM // hypotheses
-    which = (torch.arange(B, device=views[0].device) + int(step)) % hypotheses
-    cols = which[:, None] * M + torch.arange(M, device=which.device)  # [B, M]
-    return tuple(v.gather(1, cols) for v in views), which
 
 
 def split_images(images: Tensor, hypotheses: int) -> Tensor:

@@ -195,7 +195,7 @@ class PointOfInterestSelector(ViewSelector):
 
 
 # ----------------------------------------------------------------------------- config options
-RACE_MODES = ("separate", "pooled", "interleaved")  # how C sees the hypotheses while they race (selectors/hypotheses.py)
+RACE_MODES = ("separate", "pooled")  # how C sees the hypotheses while they race (selectors/hypotheses.py)
 
 
 @register("mvtn_poi")
@@ -210,8 +210,7 @@ class PoiConfig(LearnedSelectorConfig):
     other by ``race_z`` paired standard errors; null: never earlier); ``race_batches``: a racing
     epoch renders all hypotheses for at most this many batches, then the race is decided for good on
     them (null: whole epochs); ``race_mode``: C classifies each hypothesis's views as a shape of its
-    own (separate) or all H x M views pooled (pooled), or each shape is rendered under one
-    hypothesis in turn, at the cost of a normal step (interleaved: ``hypotheses.py``)."""
+    own (separate) or all H x M views pooled (pooled)."""
 
     name: str = "mvtn_poi"
     gain: float = 8.0
@@ -262,9 +261,7 @@ class PoiConfig(LearnedSelectorConfig):
         from mvtn_exp.selectors.hypotheses import HypothesisRace
 
         extra = super().modules(views)
-        if self.hypotheses == 1:
-            return extra
-        return {**extra, "hypotheses": HypothesisRace(self.hypotheses, per_hypothesis=self.race_mode == "interleaved")}
+        return {**extra, "hypotheses": HypothesisRace(self.hypotheses)} if self.hypotheses > 1 else extra
 
     def training(self):
         from mvtn_exp.selectors.probes import ProbeTraining

@@ -11,8 +11,7 @@ selector with ``grad=smoothed``, ``flip_explore > 0`` or ``hypotheses > 1``:
 - ``hypotheses`` H > 1 (``mvtn_poi``, ``poi``): for at most ``race_epochs`` epochs all H sets of
   views are rendered, C trains on each (``race_mode``), and the set of lowest G loss is kept
   (``hypotheses.py``); with ``race_batches`` N the race is decided for good after N batches of a
-  racing epoch (the rest of the epoch renders the kept set alone); ``race_mode=interleaved``
-  renders each shape under one hypothesis in turn (a racing step costs a normal step).
+  racing epoch (the rest of the epoch renders the kept set alone).
 """
 from __future__ import annotations
 
@@ -22,7 +21,7 @@ import torch
 
 from ..engine import view_gradient
 from ..tasks import classification
-from .hypotheses import interleave, join_views, split_images, split_views
+from .hypotheses import join_views, split_images, split_views
 from .training import LearnedTraining, Step
 
 
@@ -92,11 +91,8 @@ class ProbeTraining(LearnedTraining):
             self.H = self.S = 1
         self.race_steps += self.H > 1
         H, S = self.H, self.S
-        interleaved = H > 1 and self.s.race_mode == "interleaved"
         with timer.stage("selector"), torch.set_grad_enabled(not self.frozen):
             views = self.warmup_views(model, batch) if self.warm else model.select(batch, all_hypotheses=H > 1)
-            if interleaved:  # [B, H * M] -> each shape's one hypothesis [B, M] (hypotheses.py)
-                views, which = interleave(views, H, step)
             if self.flips:  # some views from their antipodes (polarity.py)
                 views, flip_mask = model.polarity.explore(views, self.s.flip_explore, flip_generator(self.cfg.seed, step))
         labels = batch["labels"].to(model.device).repeat_interleave(S)  # [B * S]
@@ -109,12 +105,9 @@ class ProbeTraining(LearnedTraining):
             loss = model.mvnet.training_loss(logits, labels, loss_fn)
         if self.flips:
             model.polarity.record(self.per_shape_loss(logits.detach(), labels), flip_mask)
-        if H > 1:  # each shape's loss under each hypothesis (or its one): G's own loss (hypotheses.py)
+        if H > 1:  # each shape's loss under each hypothesis: G's own loss (hypotheses.py)
             with timer.stage("selector"):
-                if interleaved:
-                    model.hypotheses.record_one(self.selector_loss(logits.detach(), labels), which)
-                else:
-                    model.hypotheses.record(hypothesis_losses(model, logits, images, labels, H, S, self.selector_loss))
+                model.hypotheses.record(hypothesis_losses(model, logits, images, labels, H, S, self.selector_loss))
         objective = loss
         if self.smoothed and step % self.s.probe_every == 0:  # G's gradient from the loss at perturbed views
             # (view_gradient.py), charged to G; on the other steps G gets no gradient and AdamW leaves it
