@@ -272,18 +272,18 @@ class PoiConfig(LearnedSelectorConfig):
 @register("poi")
 @dataclass
 class PoiRecipeConfig(PoiConfig):
-    """This project's learned views, the recipe that wins on view-dependent data, as defaults:
-    four hypotheses of the M views raced in pooled mode for at most 8 epochs, G trained on the
-    smoothed gradient (2 antithetic probe pairs, 10 degrees) of the centered true-class logit at
-    learning rate 1e-2, gain 32, C's BatchNorm statistics re-estimated over 24 training batches
-    before each validation; ``conf/selector/poi.yaml`` also picks the hard renderer with a camera
-    light on white shapes (``renderer=hard_camera``; a ``renderer=`` on the command line wins)."""
+    """This project's learned views, the recipe that wins on view-dependent data, as defaults: G
+    trained on the smoothed gradient (2 antithetic probe pairs, 10 degrees) of the centered
+    true-class logit at learning rate 1e-2, gain 32, C's BatchNorm statistics re-estimated over 24
+    training batches before each validation; ``conf/selector/poi.yaml`` also picks the hard
+    renderer with a camera light on white shapes (``renderer=hard_camera``; a ``renderer=`` on the
+    command line wins). One set of views: raced hypotheses (the former recipe:
+    ``selector.hypotheses=4 selector.race_epochs=8``, pooled) were behind on validation of the
+    tuning data at twice the time (docs/results/training-cost.md)."""
 
     name: str = "poi"
     gain: float = 32.0
-    hypotheses: int = 4
-    race_epochs: int = 8
-    race_mode: str = "pooled"
+    race_mode: str = "pooled"  # when hypotheses are raced
     lr: float = 1e-2
     grad: str = "smoothed"
     loss: str = "centered_logit"
