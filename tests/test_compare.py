@@ -73,6 +73,10 @@ def test_reference_where_group_and_metric(tmp_path, capsys):
         assert g["sides"][1]["diff"] == pytest.approx(-0.05 * views)
     val = compare(runs, metric="best_val_acc", where=["selector.name=spherical views=1", "selector=poi views=1"])
     assert val["groups"][0]["sides"][1]["diff"] == pytest.approx(0.11)
+    ref = compare(runs, metric="best_val_acc", where=["selector.name=spherical views=1", "selector=poi views=1"],
+                  reference="selector=poi")  # with --where too, the reference side comes first
+    assert [s["label"] for s in ref["groups"][0]["sides"]] == ["selector=poi views=1", "selector.name=spherical views=1"]
+    assert ref["groups"][0]["sides"][1]["diff"] == pytest.approx(-0.11)
     with pytest.raises(CompareError, match="differ in views"):  # one side holding two settings
         compare(runs, where=["selector=spherical", "selector=poi"])
     with pytest.raises(SystemExit) as e:

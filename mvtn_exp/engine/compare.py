@@ -209,6 +209,8 @@ def make_sides(runs: list[Run], where: list[str] | None = None, group: str | Non
                 if hit:
                     sides.setdefault(hit[0], []).append(r)
             order = [i for i in range(len(where)) if i in sides]
+            if ref:  # the side matching the reference condition first (the others keep their order)
+                order.sort(key=lambda i: not _matches(sides[i][0].settings, ref))
         else:
             for r in members:
                 sides.setdefault(key_of(r.settings), []).append(r)
