@@ -68,5 +68,6 @@ def test_search_is_validated():
     with pytest.raises(ValueError, match="selector.search_views"):
         as_config(tiny_config("/tmp/x", **base, **{"selector.search_views": 0}))
     with pytest.raises(ValueError, match="choose one way"):
-        as_config(tiny_config("/tmp/x", **{"selector.name": "poi", "selector.grad": "search"}))
+        as_config(tiny_config("/tmp/x", **{"selector.name": "poi", "selector.grad": "search", "selector.hypotheses": 4,
+                                           "selector.race_epochs": 8}))
     as_config(tiny_config("/tmp/x", **base, **{"selector.loss": "centered_logit"}))  # allowed with search

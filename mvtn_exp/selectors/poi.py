@@ -278,8 +278,8 @@ class PoiRecipeConfig(PoiConfig):
     training batches before each validation; ``conf/selector/poi.yaml`` also picks the hard
     renderer with a camera light on white shapes (``renderer=hard_camera``; a ``renderer=`` on the
     command line wins). One set of views: raced hypotheses (the former recipe:
-    ``selector.hypotheses=4 selector.race_epochs=8``, pooled) were behind on validation of the
-    tuning data at twice the time (docs/results/training-cost.md)."""
+    ``selector.hypotheses=4 selector.race_epochs=8``, pooled) were level on validation of the
+    tuning data (7 seeds) at twice the time (docs/results/training-cost.md)."""
 
     name: str = "poi"
     gain: float = 32.0
