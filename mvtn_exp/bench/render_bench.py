@@ -673,10 +673,10 @@ def to_markdown(res: Results) -> str:
 
         parts.append(scaling_markdown(res.scaling, o["quick"]) + "\n\nPlotted in `scaling.png` beside this file.")
     rows = [[t["target"], t["value"], t["limit"], t["status"]] for t in res.targets]
-    paired = (f" Times: each target's two sides timed in alternation in one job (the median of "
-              f"{min(len(t[0]) for t in res.paired.values())}+ rounds each), so a load change hits both alike."
-              if res.paired else " Times: from the grid and ResNet-18 rows above.")
-    parts.append("## Targets\n\n" + md_table(["target", "measured", "limit", "status"], rows) + "\n\n" + paired.strip())
+    times = (f"Times: each target's two sides timed in alternation in one job (the median of "
+             f"{min(len(t[0]) for t in res.paired.values())}+ rounds each), so a load change hits both alike."
+             if res.paired else "Times: from the grid and ResNet-18 rows above.")
+    parts.append("## Targets\n\n" + md_table(["target", "measured", "limit", "status"], rows) + "\n\n" + times)
     return "\n\n".join(parts) + "\n"
 
 

@@ -468,14 +468,14 @@ def run_metrics(cfg: TrainConfig, cfg_dict: dict, model, datasets: dict, test: d
     """The run's ``metrics.json``: the test split's results for ``best.pt``, model selection, the
     per-epoch history, time per stage, the cost record, the config and the provenance."""
     classes = list(datasets["train"].classes)
+    seconds = [h["seconds"] for h in history]  # every epoch, resumed ones too
     return {
         "test_acc": test["acc"], "test_mean_class_acc": test["mean_class_acc"], "test_loss": test["loss"],
         "test_per_class_acc": dict(zip(classes, test["per_class_acc"])),
         "confusion_matrix": test["confusion"], "classes": classes, "test_size": test["n"], "split": "test",
         "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
-        "best_weights": best_weights, "skipped_steps": skipped, "epoch_seconds": [h["seconds"] for h in history],
-        "mean_epoch_seconds": sum(h["seconds"] for h in history) / max(len(history), 1),
-        "train_wall_seconds": sum(h["seconds"] for h in history),  # every epoch, resumed ones too
+        "best_weights": best_weights, "skipped_steps": skipped, "epoch_seconds": seconds,
+        "mean_epoch_seconds": sum(seconds) / max(len(seconds), 1), "train_wall_seconds": sum(seconds),
         "step_seconds": timer.means(), "cost": costs,
         **{f"test_{k}": v for k, v in view_report(model, test["azim"], test["elev"]).items()},
         **{f"test_{k}": v for k, v in dataset_view_report(datasets["test"], test).items()},
