@@ -521,7 +521,7 @@ def targets(bench: Bench) -> list[dict]:
             return _target(title, "-", f"<= {factor:g} x ResNet-18", None, quick)
         ms, net_ms = med_ms(times[0]), med_ms(times[1])
         ratio = paired_ratio(times)
-        return _target(title, f"{ms:.1f} ms = {ratio:.3f} x ResNet-18 ({net_ms:.1f} ms)",
+        return _target(title, f"{ms:.1f} ms vs ResNet-18 {net_ms:.1f} ms: {ratio:.3f} x",
                        f"<= {factor:g} x ({factor * net_ms:.1f} ms)", ratio <= factor, value=ratio, limit=factor)
 
     out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, K=1: fwd+bwd vs ResNet-18 fwd+bwd on {M} images", "hard",
