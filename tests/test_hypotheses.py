@@ -245,3 +245,13 @@ def test_descriptor_subsets_feed_only_their_columns():
     only.train()(points)
     p = points - points.mean(1, keepdim=True)
     torch.testing.assert_close(seen["x"], invariant_descriptors(p, (8, 16))[..., [2, 7]].reshape(-1, 2))
+
+
+def test_selector_ks_reach_the_descriptors_and_bad_ks_are_refused():
+    from mvtn_exp.selectors.poi import PoiConfig
+
+    sel = PoiConfig(ks=[8, 24, 32]).validate().build(1, 0)
+    assert sel.ks == (8, 24, 32) and sel.scorer[0].num_features == 1 + 5 * 3
+    for bad in ([], [1], [16, 2.5]):
+        with pytest.raises(ValueError, match=r"selector\.ks="):
+            PoiConfig(ks=bad).validate()

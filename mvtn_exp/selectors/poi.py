@@ -210,7 +210,8 @@ class PoiConfig(LearnedSelectorConfig):
     other by ``race_z`` paired standard errors; null: never earlier); ``race_batches``: a racing
     epoch renders all hypotheses for at most this many batches, then the race is decided for good on
     them (null: whole epochs); ``race_mode``: C classifies each hypothesis's views as a shape of its
-    own (separate) or all H x M views pooled (pooled)."""
+    own (separate) or all H x M views pooled (pooled). ``descriptors``: the subset G scores from
+    (``DESCRIPTORS``); ``ks``: the neighbourhood sizes (points) they are computed over."""
 
     name: str = "mvtn_poi"
     gain: float = 8.0
@@ -222,10 +223,14 @@ class PoiConfig(LearnedSelectorConfig):
     race_batches: Optional[int] = None
     race_mode: str = "separate"
     descriptors: list[str] = field(default_factory=lambda: list(DESCRIPTORS))
+    ks: list[int] = field(default_factory=lambda: [16, 48])
 
     def validate(self) -> "PoiConfig":
         super().validate()
-        descriptor_columns(self.descriptors, (16, 48))
+        if not self.ks or any(int(k) != k or k < 2 for k in self.ks):
+            raise ValueError(f"selector.ks={list(self.ks)}: expected a non-empty list of neighbourhood sizes, "
+                             "each an integer >= 2")
+        descriptor_columns(self.descriptors, tuple(self.ks))
         at_least("selector.gain", self.gain, 0.0, strict=True)
         at_least("selector.cache", self.cache, 0)
         at_least("selector.hypotheses", self.hypotheses, 1)
@@ -255,7 +260,7 @@ class PoiConfig(LearnedSelectorConfig):
     def build(self, views: int, seed: int, point_encoder=None) -> PointOfInterestSelector:
         return PointOfInterestSelector(views, distance=self.distance, gain=self.gain, sphere=self.sphere,
                                        cache=self.cache, learn_gain=self.learn_gain, hypotheses=self.hypotheses,
-                                       descriptors=tuple(self.descriptors))
+                                       descriptors=tuple(self.descriptors), ks=tuple(int(k) for k in self.ks))
 
     def modules(self, views: int) -> dict:
         from mvtn_exp.selectors.hypotheses import HypothesisRace
