@@ -166,7 +166,7 @@ def paired_times(a: Callable[[], object], b: Callable[[], object], device: torch
                  budget_s: float) -> tuple[list[float], list[float]]:
     """Seconds of ``a`` and ``b`` timed in alternation (one warm-up each; the side that goes first
     alternates), at least 5 rounds and up to ``repeats`` within ``budget_s`` a round: a load change
-    hits both sides alike, so the ratio of their medians is a same-run ratio."""
+    hits both sides alike, and ``paired_ratio`` takes the median of the rounds' ratios."""
     a(), b()
     ta, tb = [timed(a, device)], [timed(b, device)]
     n = max(5, min(int(repeats), int(budget_s / max(ta[0] + tb[0], 1e-9))))
