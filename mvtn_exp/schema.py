@@ -49,7 +49,7 @@ def check_device(key: str, device: str) -> None:
             raise ValueError(f"{key}={device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
 
 
-VIEW_FAMILIES = ("cup", "decoys")  # dataset=synthetic_views families (data/synthetic_views.py FAMILIES)
+VIEW_FAMILIES = ("cup", "decoys", "slab")  # dataset=synthetic_views families (data/synthetic_views.py FAMILIES)
 
 @dataclass
 class DatasetConfig:
@@ -67,7 +67,7 @@ class DatasetConfig:
     ``<root>/shapenet_synset_dict_v2.json``, synset id -> name). ModelNet40 ``format``: ``off``
     (meshes), ``normal_resampled`` or ``ply_hdf5_2048`` (the PointNet authors' point releases).
     ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``family``: the synthetic_views
-    family (cup, decoys; empty for every other dataset); ``val_fraction``: share of
+    family (cup, decoys, slab; empty for every other dataset); ``val_fraction``: share of
     the official train split held out for model selection when a dataset has no val split.
     """
 

@@ -16,12 +16,18 @@ Every shape is the same kind of body (raw units, before normalisation; Y-up, det
 All classes draw the same numbers in the same order and nothing else, so one generator gives the
 same body and cup for every class: the detail is the only class difference.
 
-Families (``family``): ``cup`` (above, the default) and ``decoys``, kept to evaluate finished
-recipes on a place they were not tuned on. ``decoys``: a cube of side ``(W + H) / 2`` with the same
+Families (``family``): ``cup`` (above, the default), ``decoys`` and ``slab``, kept to evaluate
+finished recipes on places they were not tuned on. ``decoys``: a cube of side ``(W + H) / 2`` with the same
 cup on each of its six faces; the class detail stands in one of them, drawn uniformly per shape
 (one more draw after the dims), the other five stay empty. The global shape is the same whatever
 the face, and near-isotropic (its principal frame is arbitrary), so neither a canonical pose nor a
-class-mean view can know where to look; only the points inside the cups tell. The shape is centred
+class-mean view can know where to look; only the points inside the cups tell. ``slab`` (held out: no
+recipe or setting is chosen on it): a slab ``(4 (r + wall) + 0.26) x H x 0.6 D`` with two cups on
+each large face, their centres ``r + wall + 0.08`` either side of the middle (the same cup, so a
+line that clears a cup's own rim clears its neighbour's); the detail stands in one of the four,
+drawn uniformly per shape. The slab's principal frame is well defined (its normal is the least
+spread axis), but a view down the normal sees the two cups of one face: which face, and which cup,
+only the points inside the cups tell. The shape is centred
 (bounding box) and scaled into the unit sphere, then turned by a rotation (``so3`` by default:
 uniform over SO(3), so the cup points anywhere). Determinism, splits and the ``.npz`` cache work
 as in ``synthetic.py``.
@@ -115,34 +121,53 @@ DETAILS = {
 CLASSES: list[str] = sorted(DETAILS)
 
 
-FAMILIES = ("cup", "decoys")
+FAMILIES = ("cup", "decoys", "slab")
 # the six faces of the decoys' cube: rotations taking +Z to +Z, -Z, +X, -X, +Y, -Y
 FACES = np.array([np.eye(3), np.diag([1.0, -1.0, -1.0]), [[0, 0, 1], [0, 1, 0], [-1, 0, 0]],
                   [[0, 0, -1], [0, 1, 0], [1, 0, 0]], [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
                   [[1, 0, 0], [0, 0, -1], [0, 1, 0]]], np.float64)
+SLAB_GAP = 0.08  # between a slab cup's outer wall and the slab's middle
 
 
-def draw_family(family: str, r: np.random.Generator) -> tuple[Dims, np.ndarray]:
-    """A family's draws: the dims (the decoys' cube side as ``D``) and the rotation ``[3, 3]`` that
-    takes the +Z cup holding the detail to its face (the identity for ``cup``)."""
+class Placement(NamedTuple):
+    """Where a cup built on the +Z face at the origin goes: ``p -> p @ R.T + t`` (``R [3, 3]``, ``t [3]``)."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+
+def slab_cups(d: Dims) -> list[Placement]:
+    """The slab's four cups: x = -s, +s on the +Z face, then on the -Z face (``s = r + wall + gap``)."""
+    s = d.r + d.wall + SLAB_GAP
+    return [Placement(F, np.array([x, 0.0, 0.0])) for F in FACES[:2] for x in (-s, s)]
+
+
+def draw_family(family: str, r: np.random.Generator) -> tuple[Dims, Placement]:
+    """A family's draws: the dims (``D``: the decoys' cube side, the slab's thickness) and the
+    placement of the cup holding the detail (the identity for ``cup``)."""
     d = draw_dims(r)
     if family == "cup":
-        return d, FACES[0]
-    return d._replace(D=(d.W + d.H) / 2), FACES[int(r.integers(len(FACES)))]
+        return d, Placement(FACES[0], np.zeros(3))
+    if family == "decoys":
+        return d._replace(D=(d.W + d.H) / 2), Placement(FACES[int(r.integers(len(FACES)))], np.zeros(3))
+    d = d._replace(W=4 * (d.r + d.wall) + 2 * SLAB_GAP + 0.1, D=0.6 * d.D)
+    return d, slab_cups(d)[int(r.integers(4))]
 
 
-def _turned(part: Part, R: np.ndarray) -> Part:
-    return part[0] @ R.T, part[1]
+def _placed(part: Part, at: Placement) -> Part:
+    return part[0] @ at.R.T + at.t, part[1]
 
 
 def _builder(cls: str, family: str = "cup"):
     def build(r: np.random.Generator, res: int) -> list[Part]:
-        d, R = draw_family(family, r)
+        d, at = draw_family(family, r)
         cup = _tm(trimesh.creation.annulus(d.r, d.r + d.wall, d.h, sections=CUP_SECTIONS), (0.0, 0.0, d.D / 2 + d.h / 2), False)
-        detail = [_turned(p, R) for p in DETAILS[cls](d, max(res // 2, 8))]
+        detail = [_placed(p, at) for p in DETAILS[cls](d, max(res // 2, 8))]
         if family == "cup":
             return [_box((d.W, d.H, d.D)), cup] + detail
-        return [_box((d.D, d.D, d.D))] + [_turned(cup, F) for F in FACES] + detail
+        if family == "decoys":
+            return [_box((d.D, d.D, d.D))] + [_placed(cup, Placement(F, np.zeros(3))) for F in FACES] + detail
+        return [_box((d.W, d.H, d.D))] + [_placed(cup, c) for c in slab_cups(d)] + detail
     return build
 
 
@@ -150,10 +175,10 @@ BUILDERS = {c: _builder(c) for c in CLASSES}
 FAMILY_BUILDERS = {f: {c: _builder(c, f) for c in CLASSES} for f in FAMILIES}
 
 
-def frame_points(d: Dims, R: np.ndarray = FACES[0]) -> np.ndarray:
+def frame_points(d: Dims, at: Placement = Placement(FACES[0], np.zeros(3))) -> np.ndarray:
     """``[3, 3]`` points that travel with the mesh: floor centre, rim-plane centre, inscribed wall
-    point of the cup holding the detail (turned to its face by ``R``)."""
-    return np.array([[0.0, 0.0, d.D / 2], [0.0, 0.0, d.D / 2 + d.h], [d.r_in, 0.0, d.D / 2]]) @ R.T
+    point of the cup holding the detail (placed by ``at``)."""
+    return np.array([[0.0, 0.0, d.D / 2], [0.0, 0.0, d.D / 2 + d.h], [d.r_in, 0.0, d.D / 2]]) @ at.R.T + at.t
 
 
 def make_shape(cls: str, seq, rotation: np.ndarray, max_faces: int = 2000, family: str = "cup"):
@@ -163,10 +188,10 @@ def make_shape(cls: str, seq, rotation: np.ndarray, max_faces: int = 2000, famil
     if family not in FAMILIES:
         raise ValueError(f"dataset.family={family!r}: expected one of {', '.join(FAMILIES)}")
     v, f = build_shape(cls, seq, max_faces, builders=FAMILY_BUILDERS[family])
-    d, R = draw_family(family, np.random.default_rng(seq))  # the builder's draws again, from a fresh generator
+    d, at = draw_family(family, np.random.default_rng(seq))  # the builder's draws again, from a fresh generator
     # the frame points lie inside the bounding box and nearer the centre than the farthest
     # vertex, so normalising them with the mesh leaves the mesh's normalisation unchanged
-    both = normalize_unit_sphere(np.concatenate([v, frame_points(d, R)])) @ rotation.T
+    both = normalize_unit_sphere(np.concatenate([v, frame_points(d, at)])) @ rotation.T
     v, (a, m, w) = both[:-3], both[-3:]
     h = np.linalg.norm(m - a)
     size = np.array([np.linalg.norm(w - a), h, d.rd * h / d.h])
