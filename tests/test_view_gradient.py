@@ -54,6 +54,59 @@ def test_estimate_is_seeded_and_sees_only_loss_values():
         smoothed_view_gradient(loss, views, 0, 5.0, noise_generator(0, 0))
 
 
+def test_batched_probes_are_the_same_estimate_in_one_call():
+    """batched=True: one call on all 2 * pairs probe sets (set-major per shape), the same noise and
+    the same estimate as 2 * pairs separate calls."""
+    B, M, pairs = 3, 2, 3
+    g = torch.Generator().manual_seed(0)
+    azim, elev = torch.randn(B, M, generator=g, dtype=torch.float64) * 30, torch.randn(B, M, generator=g, dtype=torch.float64) * 20
+    target = torch.randn(B, M, generator=g, dtype=torch.float64) * 30
+    shapes = []
+
+    def loss(azim, elev, dist, sets=1):
+        shapes.append((tuple(azim.shape), sets))
+        per_view = (azim - target.repeat(1, sets)) ** 2 + elev ** 3 / 100 + dist
+        return per_view.reshape(B, sets, M).sum(2).squeeze(1) if sets == 1 else per_view.reshape(B, sets, M).sum(2)
+
+    views = (azim, elev, torch.full_like(azim, 2.2))
+    one = smoothed_view_gradient(loss, views, pairs, 5.0, noise_generator(3, 9))
+    assert shapes == [((B, M), 1)] * (2 * pairs)
+    shapes.clear()
+    batched = smoothed_view_gradient(loss, views, pairs, 5.0, noise_generator(3, 9), batched=True)
+    assert shapes == [((B, 2 * pairs * M), 2 * pairs)]
+    for x, y in zip(one, batched):
+        torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-12)
+
+
+def test_batched_probes_train_g_as_separate_probes_do(tmp_path, monkeypatch):
+    """selector.probe_batched=true in a training step: one renderer call for the probes instead of
+    2 * pairs, C bit-identical (its step does not read the probes), G the same up to float rounding."""
+    from mvtn_exp.model import MVTN
+
+    renders = []
+    real = MVTN.render
+
+    def counting(self, batch, azim, *a, **k):
+        renders.append(azim.shape[1])
+        return real(self, batch, azim, *a, **k)
+
+    monkeypatch.setattr(MVTN, "render", counting)
+    cache = str(tmp_path / "cache")
+    runs = {}
+    for batched in (False, True):
+        renders.clear()
+        kw = {"selector.grad": "smoothed", "selector.probe_pairs": 2, "selector.probe_batched": batched}
+        train(tiny(cache, epochs=1, batch_size=48, **kw), tmp_path / str(batched))
+        runs[batched] = (checkpoint.load(tmp_path / str(batched) / "last.pt")["model"], list(renders))
+    (a, ra), (b, rb) = runs[False], runs[True]
+    M = ra[0]
+    assert ra[:5] == [M] * 5 and rb[:2] == [M, 4 * M]  # the step's render, then its probes
+    assert len(rb) == len(ra) - 3
+    assert all(torch.equal(a[k], b[k]) for k in a if k.startswith("mvnet."))
+    g_keys = [k for k in a if k.startswith("selector.") and a[k].is_floating_point()]
+    assert g_keys and all(torch.allclose(a[k], b[k], rtol=1e-4, atol=1e-6) for k in g_keys)
+
+
 def test_surrogate_hands_g_over_b_to_the_views():
     azim, elev = torch.randn(4, 2, requires_grad=True), torch.randn(4, 2, requires_grad=True)
     ga, ge = torch.randn(4, 2), torch.randn(4, 2)

@@ -33,7 +33,7 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
-from ..selectors.hypotheses import join_views, split_images
+from ..selectors.hypotheses import join_views, split_images, split_views
 from . import distributed, seeding
 
 
@@ -57,26 +57,36 @@ def noise_generator(seed: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed((int(seed) * 1_000_003 + int(step)) % (2 ** 63))
 
 
-def smoothed_view_gradient(render_loss: Callable[[Tensor, Tensor, Tensor], Tensor], views: tuple,
-                           pairs: int, sigma: float, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+def smoothed_view_gradient(render_loss: Callable[..., Tensor], views: tuple,
+                           pairs: int, sigma: float, generator: torch.Generator, batched: bool = False) -> tuple[Tensor, Tensor]:
     """The antithetic estimate of dL_sigma/du (module docstring) for every shape and view.
 
     render_loss: ``(azim, elev, dist) [B, M] -> per-shape loss [B]`` (called 2 * pairs times, under
-    no_grad). views: ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world units; detached).
-    Returns ``(g_azim, g_elev)``, each ``[B, M]``: loss per degree of each view's azimuth / elevation.
+    no_grad); ``batched``: called once instead, as ``render_loss(azim, elev, dist, sets=2 * pairs)``
+    on ``[B, 2 * pairs * M]`` views (set-major per shape: +pair 1, -pair 1, +pair 2, ...) returning
+    ``[B, 2 * pairs]`` (one renderer call and one C call for every probe: the same noise, the same
+    estimate up to float rounding). views: ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world
+    units; detached). Returns ``(g_azim, g_elev)``, each ``[B, M]``: loss per degree of each view's
+    azimuth / elevation.
     """
     if pairs < 1 or not sigma > 0:
         raise ValueError(f"smoothed_view_gradient: need pairs >= 1 and sigma > 0, got {pairs}, {sigma}")
     azim, elev, dist = (v.detach() for v in views)
-    g_azim, g_elev = torch.zeros_like(azim), torch.zeros_like(elev)
     with torch.no_grad():
-        for _ in range(int(pairs)):
-            eps = torch.randn((2, *azim.shape), generator=generator, dtype=torch.float64).to(azim)
-            plus = render_loss(azim + sigma * eps[0], elev + sigma * eps[1], dist)
-            minus = render_loss(azim - sigma * eps[0], elev - sigma * eps[1], dist)
-            w = ((plus - minus) / (2.0 * sigma * pairs)).to(azim)[:, None]  # [B, 1]
-            g_azim += w * eps[0]
-            g_elev += w * eps[1]
+        eps = [torch.randn((2, *azim.shape), generator=generator, dtype=torch.float64).to(azim) for _ in range(int(pairs))]
+        if batched:
+            probes = [(azim + s * sigma * e[0], elev + s * sigma * e[1]) for e in eps for s in (1.0, -1.0)]
+            losses = render_loss(torch.cat([a for a, _ in probes], 1), torch.cat([b for _, b in probes], 1),
+                                 dist.repeat(1, len(probes)), sets=len(probes))  # [B, 2 * pairs]
+            plus, minus = losses[:, 0::2].T, losses[:, 1::2].T  # [pairs, B]
+        else:
+            plus = [render_loss(azim + sigma * e[0], elev + sigma * e[1], dist) for e in eps]
+            minus = [render_loss(azim - sigma * e[0], elev - sigma * e[1], dist) for e in eps]
+        g_azim, g_elev = torch.zeros_like(azim), torch.zeros_like(elev)
+        for e, p, m in zip(eps, plus, minus):
+            w = ((p - m) / (2.0 * sigma * pairs)).to(azim)[:, None]  # [B, 1]
+            g_azim += w * e[0]
+            g_elev += w * e[1]
     return g_azim, g_elev
 
 
@@ -85,11 +95,18 @@ def model_render_loss(model, batch: dict, labels: Tensor, per_shape_loss: Callab
     """``render_loss`` for ``smoothed_view_gradient``: R then C of ``model`` (an ``MVTN``) in eval mode.
 
     hypotheses H > 1: the views come as ``[B * H, M]`` (``selectors.hypotheses.split_views``), each
-    hypothesis's M views are classified as a shape of their own, and ``labels`` are ``[B * H]``."""
-    def render_loss(azim: Tensor, elev: Tensor, dist: Tensor) -> Tensor:
+    hypothesis's M views are classified as a shape of their own, and ``labels`` are ``[B * H]``.
+    ``sets`` K > 1 (H = 1 only): the views come as ``[B, K * M]``, K probe sets rendered in one call,
+    each classified alone; returns ``[B, K]``."""
+    def render_loss(azim: Tensor, elev: Tensor, dist: Tensor, sets: int = 1) -> Tensor:
+        if sets > 1 and hypotheses > 1:
+            raise ValueError("model_render_loss: probe sets and hypotheses cannot be batched together")
         views = (azim, elev, dist) if hypotheses == 1 else join_views((azim, elev, dist), hypotheses)
         with eval_mode(model):
             images = model.render(batch, *views)
+            if sets > 1:
+                logits, _ = model.mvnet(split_images(images, sets), split_views(views, sets))
+                return per_shape_loss(logits, labels.repeat_interleave(sets)).reshape(-1, sets)
             logits, _ = (model.mvnet(images, views) if hypotheses == 1
                          else model.mvnet(split_images(images, hypotheses), (azim, elev, dist)))
         return per_shape_loss(logits, labels)

@@ -97,7 +97,8 @@ class LearnedSelectorConfig(SelectorConfig):
 
     ``grad``: ``autograd`` (the paper's: through the differentiable renderer) or ``smoothed`` (the
     task loss smoothed over the views by a Gaussian of ``probe_sigma`` degrees, estimated from
-    ``probe_pairs`` antithetic pairs of renders every ``probe_every`` steps; any renderer).
+    ``probe_pairs`` antithetic pairs of renders every ``probe_every`` steps, all in one renderer call
+    and one C call with ``probe_batched``; any renderer).
     ``search``: C's loss read at ``search_views`` candidate directions over the sphere every
     ``search_every`` steps, each view pulled towards the best candidate near it with weight
     ``search_weight`` (``selectors/search.py``; any renderer).
@@ -126,6 +127,7 @@ class LearnedSelectorConfig(SelectorConfig):
     probe_pairs: int = 2
     probe_sigma: float = 10.0
     probe_every: int = 1
+    probe_batched: bool = False
     search_views: int = 12
     search_every: int = 1
     search_weight: float = 1.0
@@ -138,7 +140,7 @@ class LearnedSelectorConfig(SelectorConfig):
     # keys that set how G trains, not what the model is: they may change when a run is resumed
     training_keys: ClassVar[tuple] = ("lr", "beta1", "clip", "stop_epoch", "warmup_epochs", "warmup_views",
                                       "warmup_num_views", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every",
-                                      "search_views", "search_every", "search_weight",
+                                      "probe_batched", "search_views", "search_every", "search_weight",
                                       "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
                                       "race_z", "race_batches", "race_mode", "cache")
 

@@ -5,7 +5,8 @@ selector with ``grad=smoothed``, ``flip_explore > 0`` or ``hypotheses > 1``:
 
 - ``grad=smoothed``: R is not differentiated; every ``probe_every`` steps G's gradient is the
   task loss smoothed over the views, estimated from ``probe_pairs`` antithetic pairs of renders
-  (``engine/view_gradient.py``) of G's own ``loss`` (``task`` or ``centered_logit``);
+  (``engine/view_gradient.py``) of G's own ``loss`` (``task`` or ``centered_logit``); with
+  ``probe_batched`` every probe of a step in one renderer call and one C call (not while racing);
 - ``flip_explore``: some training views are rendered from their antipodes, and a view whose
   antipode had the lower loss turns round at the end of the epoch (``polarity.py``);
 - ``hypotheses`` H > 1 (``mvtn_poi``, ``poi``): for at most ``race_epochs`` epochs all H sets of
@@ -115,7 +116,8 @@ class ProbeTraining(LearnedTraining):
                 g = view_gradient.smoothed_view_gradient(
                     view_gradient.model_render_loss(model, batch, labels, self.selector_loss, hypotheses=S),
                     split_views(views, S) if S > 1 else views,
-                    self.s.probe_pairs, self.s.probe_sigma, view_gradient.noise_generator(self.cfg.seed, step))
+                    self.s.probe_pairs, self.s.probe_sigma, view_gradient.noise_generator(self.cfg.seed, step),
+                    batched=self.s.probe_batched and S == 1)
                 objective = loss + view_gradient.surrogate(views, *(join_views(g, S) if S > 1 else g))
         return Step(views, images, logits, labels, loss, objective)
 
