@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -435,6 +436,32 @@ def test_warmup_views_count_and_layout(cache):
         if kind == "spherical":
             ref = layouts.spherical(M, 3, cfg.selector.distance, sphere=cfg.selector.sphere)
             assert torch.allclose(azim, ref[0]) and torch.allclose(elev, ref[1])
+
+
+def test_canonical_warmup_views_turn_with_the_shape(cache):
+    """warmup_views=canonical: a ring at warmup_elevation in each shape's principal frame. Turning a
+    shape by Q turns its views by Q (the same views of the shape); elevation 90 looks down the
+    least-spread axis, i.e. along canonical +y."""
+    from mvtn_exp.data.synthetic import random_rotation
+    from mvtn_exp.render.cameras import view_directions
+    from mvtn_exp.selectors.canonical import pca_frames
+
+    g = torch.Generator().manual_seed(0)
+    pts = torch.randn(1, 256, 3, generator=g, dtype=torch.float64) * torch.tensor([3.0, 0.5, 1.5], dtype=torch.float64)
+    pts = pts + pts.pow(2) * 0.1  # skewed: a unique sign for every axis
+    Q = torch.from_numpy(random_rotation("so3", np.random.default_rng(3)))
+    batch = {"points": torch.cat([pts, pts @ Q.T]).float()}
+    for elevation, M in ((30.0, 3), (90.0, 1)):
+        cfg, model = tiny_model(cache, **{"selector.warmup_epochs": 1, "selector.warmup_views": "canonical",
+                                          "selector.warmup_elevation": elevation, "selector.warmup_num_views": M})
+        azim, elev, dist = LearnedTraining(cfg).warmup_views(model, batch)
+        assert azim.shape == (2, M) and torch.all(dist == cfg.selector.distance)
+        d = view_directions(azim.double(), elev.double())  # [2, M, 3]
+        torch.testing.assert_close(d[1], d[0] @ Q.T, atol=1e-4, rtol=0)
+        if elevation == 90.0:
+            torch.testing.assert_close(d[:, 0], pca_frames(batch["points"].double())[:, 1], atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match="selector.warmup_elevation"):
+        tiny_model(cache, **{"selector.warmup_epochs": 1, "selector.warmup_elevation": 120.0})
 
 
 def test_selector_epochs_freezes_g_afterwards(cache, tmp_path):

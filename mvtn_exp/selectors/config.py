@@ -77,7 +77,7 @@ class SelectorConfig(OptionConfig):
 
 GRADIENTS = ("autograd", "smoothed", "search")  # how G gets its gradient (engine/view_gradient.py)
 LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
-WARMUP_VIEWS = ("u0", "random", "spherical")
+WARMUP_VIEWS = ("u0", "random", "spherical", "canonical")
 BN_SCOPES = ("all", "eval")  # what re-estimated BatchNorm statistics serve (engine/precise_bn.py)
 
 
@@ -92,8 +92,10 @@ class LearnedSelectorConfig(SelectorConfig):
     G's optimiser (an AdamW group beside C's): ``lr``, ``beta1`` (first-moment decay), ``clip``
     (G's gradient L2 norm clipped before the step), ``stop_epoch`` (G's learning rate is 0 from
     this 0-based epoch on; null: never). ``warmup_epochs``: G frozen for the first epochs while C
-    trains on ``warmup_views`` (u0: G's initial views; random; spherical), ``warmup_num_views`` of
-    them (null: ``views``).
+    trains on ``warmup_views`` (u0: G's initial views; random; spherical; canonical: a circular
+    ring at ``warmup_elevation`` degrees in each shape's principal frame, ``selectors/canonical.py``,
+    so that C learns from one consistent view of every shape before G moves), ``warmup_num_views``
+    of them (null: ``views``).
 
     ``grad``: ``autograd`` (the paper's: through the differentiable renderer) or ``smoothed`` (the
     task loss smoothed over the views by a Gaussian of ``probe_sigma`` degrees, estimated from
@@ -122,6 +124,7 @@ class LearnedSelectorConfig(SelectorConfig):
     warmup_epochs: int = 0
     warmup_views: str = "u0"
     warmup_num_views: Optional[int] = None
+    warmup_elevation: float = 30.0
     grad: str = "autograd"
     loss: str = "task"
     probe_pairs: int = 2
@@ -139,7 +142,7 @@ class LearnedSelectorConfig(SelectorConfig):
     learned: ClassVar[bool] = True
     # keys that set how G trains, not what the model is: they may change when a run is resumed
     training_keys: ClassVar[tuple] = ("lr", "beta1", "clip", "stop_epoch", "warmup_epochs", "warmup_views",
-                                      "warmup_num_views", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every",
+                                      "warmup_num_views", "warmup_elevation", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every",
                                       "probe_batched", "search_views", "search_every", "search_weight",
                                       "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
                                       "race_z", "race_batches", "race_mode", "cache")
@@ -156,6 +159,8 @@ class LearnedSelectorConfig(SelectorConfig):
             at_least("selector.stop_epoch", self.stop_epoch, 0)
         at_least("selector.warmup_epochs", self.warmup_epochs, 0)
         one_of("selector.warmup_views", self.warmup_views, WARMUP_VIEWS)
+        if not -90.0 <= self.warmup_elevation <= 90.0:
+            raise ValueError(f"selector.warmup_elevation={self.warmup_elevation!r}: expected degrees in [-90, 90]")
         if self.warmup_num_views is not None:
             at_least("selector.warmup_num_views", self.warmup_num_views, 1)
             if self.warmup_epochs == 0:

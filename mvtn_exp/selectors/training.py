@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from ..render import layouts
+from .canonical import pca_frames, world_views
 from .fixed import random_directions
 
 
@@ -112,7 +113,8 @@ class LearnedTraining(SelectorTraining):
 
     def warmup_views(self, model, batch: dict):
         """Views of a warm-up step, each ``[B, warmup_num_views or views]``: G's initial views u0,
-        new uniform random views per shape, or the fixed spherical layout."""
+        new uniform random views per shape, the fixed spherical layout, or a ring in each shape's
+        principal frame (``canonical``: world directions of the shapes as posed)."""
         B, M = batch["points"].shape[0], self.s.warmup_num_views or self.cfg.views
         if self.s.warmup_views == "random":
             azim, elev = random_directions((B, M))
@@ -120,6 +122,9 @@ class LearnedTraining(SelectorTraining):
             return azim, elev, torch.full_like(azim, self.s.distance)
         if self.s.warmup_views == "spherical":
             return layouts.spherical(M, B, self.s.distance, device=model.device, sphere=self.s.sphere)
+        if self.s.warmup_views == "canonical":  # a ring in each shape's principal frame, as world views
+            ring = layouts.circular(M, B, self.s.warmup_elevation, self.s.distance, device=model.device)
+            return world_views(ring, pca_frames(batch["points"].to(model.device)))
         return tuple(t.to(model.device) for t in model.selector.initial_views(B))
 
     def select(self, model, batch: dict):
