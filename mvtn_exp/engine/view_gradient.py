@@ -97,16 +97,19 @@ def model_render_loss(model, batch: dict, labels: Tensor, per_shape_loss: Callab
     hypotheses H > 1: the views come as ``[B * H, M]`` (``selectors.hypotheses.split_views``), each
     hypothesis's M views are classified as a shape of their own, and ``labels`` are ``[B * H]``.
     ``sets`` K > 1 (H = 1 only): the views come as ``[B, K * M]``, K probe sets rendered in one call,
-    each classified alone; returns ``[B, K]``."""
+    each classified alone (C on one set at a time); returns ``[B, K]``."""
     def render_loss(azim: Tensor, elev: Tensor, dist: Tensor, sets: int = 1) -> Tensor:
         if sets > 1 and hypotheses > 1:
             raise ValueError("model_render_loss: probe sets and hypotheses cannot be batched together")
         views = (azim, elev, dist) if hypotheses == 1 else join_views((azim, elev, dist), hypotheses)
         with eval_mode(model):
             images = model.render(batch, *views)
-            if sets > 1:
-                logits, _ = model.mvnet(split_images(images, sets), split_views(views, sets))
-                return per_shape_loss(logits, labels.repeat_interleave(sets)).reshape(-1, sets)
+            if sets > 1:  # C per set: on a CPU, C on B shapes K times is faster than once on B * K
+                B, M = azim.shape[0], azim.shape[1] // sets
+                images = images.reshape(B, sets, M, *images.shape[2:])
+                per_set = [tuple(v.reshape(B, sets, M)[:, k] for v in views) for k in range(sets)]
+                return torch.stack([per_shape_loss(model.mvnet(images[:, k], per_set[k])[0], labels)
+                                    for k in range(sets)], 1)
             logits, _ = (model.mvnet(images, views) if hypotheses == 1
                          else model.mvnet(split_images(images, hypotheses), (azim, elev, dist)))
         return per_shape_loss(logits, labels)
