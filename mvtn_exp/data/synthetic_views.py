@@ -136,6 +136,9 @@ class Placement(NamedTuple):
     t: np.ndarray
 
 
+ON_FACE = [Placement(F, np.zeros(3)) for F in FACES]  # the decoys' six cups; ON_FACE[0]: the cup family's
+
+
 def slab_cups(d: Dims) -> list[Placement]:
     """The slab's four cups: x = -s, +s on the +Z face, then on the -Z face (``s = r + wall + gap``)."""
     s = d.r + d.wall + SLAB_GAP
@@ -147,9 +150,9 @@ def draw_family(family: str, r: np.random.Generator) -> tuple[Dims, Placement]:
     placement of the cup holding the detail (the identity for ``cup``)."""
     d = draw_dims(r)
     if family == "cup":
-        return d, Placement(FACES[0], np.zeros(3))
+        return d, ON_FACE[0]
     if family == "decoys":
-        return d._replace(D=(d.W + d.H) / 2), Placement(FACES[int(r.integers(len(FACES)))], np.zeros(3))
+        return d._replace(D=(d.W + d.H) / 2), ON_FACE[int(r.integers(len(FACES)))]
     d = d._replace(W=4 * (d.r + d.wall) + 2 * SLAB_GAP + 0.1, D=0.6 * d.D)
     return d, slab_cups(d)[int(r.integers(4))]
 
@@ -166,7 +169,7 @@ def _builder(cls: str, family: str = "cup"):
         if family == "cup":
             return [_box((d.W, d.H, d.D)), cup] + detail
         if family == "decoys":
-            return [_box((d.D, d.D, d.D))] + [_placed(cup, Placement(F, np.zeros(3))) for F in FACES] + detail
+            return [_box((d.D, d.D, d.D))] + [_placed(cup, c) for c in ON_FACE] + detail
         return [_box((d.W, d.H, d.D))] + [_placed(cup, c) for c in slab_cups(d)] + detail
     return build
 
@@ -175,7 +178,7 @@ BUILDERS = {c: _builder(c) for c in CLASSES}
 FAMILY_BUILDERS = {f: {c: _builder(c, f) for c in CLASSES} for f in FAMILIES}
 
 
-def frame_points(d: Dims, at: Placement = Placement(FACES[0], np.zeros(3))) -> np.ndarray:
+def frame_points(d: Dims, at: Placement = ON_FACE[0]) -> np.ndarray:
     """``[3, 3]`` points that travel with the mesh: floor centre, rim-plane centre, inscribed wall
     point of the cup holding the detail (placed by ``at``)."""
     return np.array([[0.0, 0.0, d.D / 2], [0.0, 0.0, d.D / 2 + d.h], [d.r_in, 0.0, d.D / 2]]) @ at.R.T + at.t

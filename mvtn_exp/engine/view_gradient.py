@@ -33,7 +33,7 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
-from ..selectors.hypotheses import join_views, split_images, split_views
+from ..selectors.hypotheses import join_views, split_images
 from . import distributed, seeding
 
 
@@ -64,8 +64,8 @@ def smoothed_view_gradient(render_loss: Callable[..., Tensor], views: tuple,
     render_loss: ``(azim, elev, dist) [B, M] -> per-shape loss [B]`` (called 2 * pairs times, under
     no_grad); ``batched``: called once instead, as ``render_loss(azim, elev, dist, sets=2 * pairs)``
     on ``[B, 2 * pairs * M]`` views (set-major per shape: +pair 1, -pair 1, +pair 2, ...) returning
-    ``[B, 2 * pairs]`` (one renderer call and one C call for every probe: the same noise, the same
-    estimate up to float rounding). views: ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world
+    ``[B, 2 * pairs]`` (one renderer call for every probe: the same noise, the same estimate up to
+    float rounding). views: ``(azim, elev, dist)``, each ``[B, M]`` (degrees, world
     units; detached). Returns ``(g_azim, g_elev)``, each ``[B, M]``: loss per degree of each view's
     azimuth / elevation.
     """

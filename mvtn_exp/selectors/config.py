@@ -99,8 +99,8 @@ class LearnedSelectorConfig(SelectorConfig):
 
     ``grad``: ``autograd`` (the paper's: through the differentiable renderer) or ``smoothed`` (the
     task loss smoothed over the views by a Gaussian of ``probe_sigma`` degrees, estimated from
-    ``probe_pairs`` antithetic pairs of renders every ``probe_every`` steps, all in one renderer call
-    and one C call with ``probe_batched``; any renderer).
+    ``probe_pairs`` antithetic pairs of renders every ``probe_every`` steps, their renders in one
+    renderer call with ``probe_batched``; any renderer).
     ``search``: C's loss read at ``search_views`` candidate directions over the sphere every
     ``search_every`` steps, each view pulled towards the best candidate near it with weight
     ``search_weight`` (``selectors/search.py``; any renderer).

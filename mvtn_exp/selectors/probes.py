@@ -6,7 +6,7 @@ selector with ``grad=smoothed``, ``flip_explore > 0`` or ``hypotheses > 1``:
 - ``grad=smoothed``: R is not differentiated; every ``probe_every`` steps G's gradient is the
   task loss smoothed over the views, estimated from ``probe_pairs`` antithetic pairs of renders
   (``engine/view_gradient.py``) of G's own ``loss`` (``task`` or ``centered_logit``); with
-  ``probe_batched`` every probe of a step in one renderer call and one C call (not while racing);
+  ``probe_batched`` every probe of a step rendered in one call (not while racing);
 - ``flip_explore``: some training views are rendered from their antipodes, and a view whose
   antipode had the lower loss turns round at the end of the epoch (``polarity.py``);
 - ``hypotheses`` H > 1 (``mvtn_poi``, ``poi``): for at most ``race_epochs`` epochs all H sets of
