@@ -48,6 +48,34 @@ def test_poi_hypotheses_start_apart_and_the_active_one_is_the_output():
         build_selector("mvtn_poi", 2, hypotheses=0)
 
 
+def test_antipodal_hypotheses_are_the_free_ones_seen_from_the_opposite_side():
+    """antipodes=true, H = 4: hypotheses 2 and 3 look from exactly opposite the directions of 0 and
+    1, at the start and after G has moved, and G's gradient reaches the scores through both halves."""
+    torch.manual_seed(0)
+    sel = build_selector("mvtn_poi", 2, hypotheses=4, race_epochs=1, antipodes=True)
+    assert sel.scorer[-1].out_features == 2 * 2  # two free hypotheses of two views
+    pts = torch.randn(5, 80, 3) * torch.tensor([1.0, 0.6, 0.3])
+    a0, e0, _ = sel.initial_views(1, all_hypotheses=True)
+    d0 = direction(a0[0], e0[0])  # [8, 3]
+    assert torch.allclose(d0[4:], -d0[:4], atol=1e-5)
+    assert float((d0[:4, None] - d0[None, :4]).norm(dim=-1).add(torch.eye(4) * 9).min()) > 0.3
+    for p in sel.scorer[-1].parameters():
+        torch.nn.init.normal_(p, std=1.0)
+    azim, elev, _ = sel(pts, all_hypotheses=True)
+    d = direction(azim, elev).detach()  # [5, 8, 3]
+    assert torch.allclose(d[:, 4:], -d[:, :4], atol=1e-4)
+    assert float((d[:, :4] - d0[:4]).norm(dim=-1).min()) > 1e-2  # G moved them
+    only_far = sel(pts, all_hypotheses=True)[1][:, 4:].sum()  # the antipodes alone
+    only_far.backward()
+    assert float(sel.scorer[-1].weight.grad.abs().max()) > 0
+    sel.active.fill_(3)  # the active antipode is the output
+    assert torch.allclose(sel(pts)[0], azim[:, 6:8])
+    with pytest.raises(ValueError, match="even number of hypotheses"):
+        PointOfInterestSelector(2, hypotheses=3, antipodes=True)
+    with pytest.raises(ValueError, match="selector.antipodes=true with selector.hypotheses=3"):
+        build_selector("mvtn_poi", 2, hypotheses=3, race_epochs=1, antipodes=True)
+
+
 def test_race_picks_the_lowest_mean_loss_and_clears():
     race = HypothesisRace(3)
     race.record(torch.tensor([[1.0, 2.0, 0.5], [1.0, 2.0, 2.5]]))  # means 1.0 / 2.0 / 1.5
@@ -147,6 +175,7 @@ def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
     ({**HYP, "selector.race_z": -1.0}, "selector.race_z"),
     ({**HYP, "selector.race_mode": "mixed"}, "selector.race_mode"),
     ({**HYP, "selector.race_batches": 0}, "selector.race_batches"),
+    ({"selector.name": "mvtn_poi", "selector.antipodes": True}, "expected an even number"),
 ])
 def test_bad_hypothesis_settings_are_refused(tmp_path, overrides, needle):
     with pytest.raises(ValueError, match=needle):

@@ -120,14 +120,18 @@ class PointOfInterestSelector(ViewSelector):
 
     def __init__(self, views: int, hidden: int = 64, ks: Sequence[int] = (16, 48), gain: float = 8.0,
                  distance: float = 2.2, sphere: str = "equal_area", cache: int = 0, learn_gain: bool = False,
-                 hypotheses: int = 1, descriptors: Sequence[str] = DESCRIPTORS, **_ignored) -> None:
+                 hypotheses: int = 1, descriptors: Sequence[str] = DESCRIPTORS, antipodes: bool = False,
+                 **_ignored) -> None:
         super().__init__(views)
         if not gain > 0:
             raise ValueError(f"PointOfInterestSelector: gain must be > 0, got {gain!r}")
         if int(hypotheses) < 1:
             raise ValueError(f"PointOfInterestSelector: hypotheses must be >= 1, got {hypotheses!r}")
-        M, self.hypotheses = self.views, int(hypotheses)
+        if antipodes and int(hypotheses) % 2:
+            raise ValueError(f"PointOfInterestSelector: antipodes needs an even number of hypotheses, got {hypotheses!r}")
+        M, self.hypotheses, self.antipodes = self.views, int(hypotheses), bool(antipodes)
         H = self.hypotheses
+        free = H // 2 if antipodes else H  # hypotheses with their own scores (the rest: their antipodes)
         if H > 1:
             self.register_buffer("active", torch.zeros((), dtype=torch.long))
         self.ks, self.distance = tuple(int(k) for k in ks), float(distance)
@@ -137,19 +141,21 @@ class PointOfInterestSelector(ViewSelector):
         else:
             self.register_buffer("log_gain", log_gain, persistent=False)
         self.descriptors = InvariantCache(partial(invariant_descriptors, ks=self.ks), cache)
-        azim0, elev0, _ = layouts.spherical(M * H, 1, distance=distance, sphere=sphere)
-        order = torch.arange(M * H).reshape(M, H).T.reshape(-1)  # hypothesis h, view m <- layout m * H + h
-        azim0, elev0 = azim0[:, order], elev0[:, order]
-        self.register_buffer("azim0", azim0[0], persistent=False)  # [H * M], hypothesis-major
-        self.register_buffer("elev0", elev0[0], persistent=False)
-        a, e = torch.deg2rad(azim0[0]), torch.deg2rad(elev0[0])
+        azim0, elev0, _ = layouts.spherical(M * free, 1, distance=distance, sphere=sphere)
+        order = torch.arange(M * free).reshape(M, free).T.reshape(-1)  # hypothesis h, view m <- layout m * H + h
+        azim0, elev0 = azim0[0, order], elev0[0, order]
+        if antipodes:  # hypothesis free + h: hypothesis h's views from the opposite side
+            azim0, elev0 = torch.cat([azim0, torch.remainder(azim0 + 360.0, 360.0) - 180.0]), torch.cat([elev0, -elev0])
+        self.register_buffer("azim0", azim0, persistent=False)  # [H * M], hypothesis-major
+        self.register_buffer("elev0", elev0, persistent=False)
+        a, e = torch.deg2rad(azim0), torch.deg2rad(elev0)
         self.register_buffer("d0", torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1),
                              persistent=False)  # [H * M, 3]
         self.register_buffer("columns", torch.tensor(descriptor_columns(descriptors, self.ks)), persistent=False)
         f = len(self.columns)
         self.scorer = nn.Sequential(nn.BatchNorm1d(f), nn.Linear(f, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),
                                     nn.Linear(hidden, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),
-                                    nn.Linear(hidden, M * H))
+                                    nn.Linear(hidden, M * free))
         nn.init.zeros_(self.scorer[-1].weight)
         nn.init.zeros_(self.scorer[-1].bias)
 
@@ -166,19 +172,22 @@ class PointOfInterestSelector(ViewSelector):
         return azim, elev, torch.full_like(azim, self.distance)
 
     def point_weights(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        """``[B, N, 3]`` -> (centred points ``[B, N, 3]``, softmax weights over the points ``[B, N, H * M]``)."""
+        """``[B, N, 3]`` -> (centred points ``[B, N, 3]``, softmax weights over the points ``[B, N, H' * M]``;
+        H' = H, or H / 2 with ``antipodes``)."""
         p = points - points.mean(1, keepdim=True)
         with torch.no_grad():
             desc = self.descriptors(p.detach())[..., self.columns]  # [B, N, F]
         B, N, F = desc.shape
-        s = self.scorer(desc.reshape(B * N, F)).reshape(B, N, self.views * self.hypotheses)
+        s = self.scorer(desc.reshape(B * N, F)).reshape(B, N, self.scorer[-1].out_features)
         return p, torch.softmax(s, dim=1)
 
     def forward(self, points: Tensor, all_hypotheses: bool = False) -> Views:
         """``[B, N, 3]`` -> views ``[B, M]`` (``[B, H * M]`` with ``all_hypotheses``)."""
         self._check_points(points)
         p, w = self.point_weights(points.to(self.d0.dtype))
-        q = torch.einsum("bnm,bnc->bmc", w, p)  # [B, H * M, 3]
+        q = torch.einsum("bnm,bnc->bmc", w, p)  # [B, H' * M, 3]
+        if self.antipodes:  # the second half of the hypotheses: d -> -d (d0 is negated there already)
+            q = torch.cat([q, -q], 1)
         azim, elev = direction_to_angles(self.d0 + self.log_gain.exp() * q)
         azim, elev = self._columns(azim, all_hypotheses), self._columns(elev, all_hypotheses)
         return azim, elev, torch.full_like(azim, self.distance)
@@ -190,7 +199,8 @@ class PointOfInterestSelector(ViewSelector):
 
     def extra_repr(self) -> str:
         learned = ", learned" if isinstance(self.log_gain, nn.Parameter) else ""
-        hyp = f", hypotheses={self.hypotheses} (active {int(self.active)})" if self.hypotheses > 1 else ""
+        anti = ", antipodes" if self.antipodes else ""
+        hyp = f", hypotheses={self.hypotheses}{anti} (active {int(self.active)})" if self.hypotheses > 1 else ""
         return f"views={self.views}, ks={self.ks}, gain={self.gain:g}{learned}, distance={self.distance}{hyp}"
 
 
@@ -210,7 +220,8 @@ class PoiConfig(LearnedSelectorConfig):
     other by ``race_z`` paired standard errors; null: never earlier); ``race_batches``: a racing
     epoch renders all hypotheses for at most this many batches, then the race is decided for good on
     them (null: whole epochs); ``race_mode``: C classifies each hypothesis's views as a shape of its
-    own (separate) or all H x M views pooled (pooled). ``descriptors``: the subset G scores from
+    own (separate) or all H x M views pooled (pooled); ``antipodes``: the second half of the H
+    hypotheses are the first half's views from the opposite side (G scores H / 2). ``descriptors``: the subset G scores from
     (``DESCRIPTORS``); ``ks``: the neighbourhood sizes (points) they are computed over."""
 
     name: str = "mvtn_poi"
@@ -222,6 +233,7 @@ class PoiConfig(LearnedSelectorConfig):
     race_z: Optional[float] = 3.0
     race_batches: Optional[int] = None
     race_mode: str = "separate"
+    antipodes: bool = False
     descriptors: list[str] = field(default_factory=lambda: list(DESCRIPTORS))
     ks: list[int] = field(default_factory=lambda: [16, 48])
 
@@ -246,6 +258,9 @@ class PoiConfig(LearnedSelectorConfig):
         if self.hypotheses > 1 and (self.flip_explore > 0 or self.grad == "search"):
             raise ValueError("selector.hypotheses with selector.flip_explore or selector.grad=search: choose one way "
                              "to explore")
+        if self.antipodes and (self.hypotheses < 2 or self.hypotheses % 2):
+            raise ValueError(f"selector.antipodes=true with selector.hypotheses={self.hypotheses}: expected an even "
+                             "number of hypotheses (each free one raced against its views from the opposite side)")
         if self.from_ckpt and self.hypotheses > 1:
             raise ValueError("selector.from_ckpt with selector.hypotheses > 1: a transferred G is frozen, it races "
                              "nothing")
@@ -260,7 +275,8 @@ class PoiConfig(LearnedSelectorConfig):
     def build(self, views: int, seed: int, point_encoder=None) -> PointOfInterestSelector:
         return PointOfInterestSelector(views, distance=self.distance, gain=self.gain, sphere=self.sphere,
                                        cache=self.cache, learn_gain=self.learn_gain, hypotheses=self.hypotheses,
-                                       descriptors=tuple(self.descriptors), ks=tuple(int(k) for k in self.ks))
+                                       descriptors=tuple(self.descriptors), ks=tuple(int(k) for k in self.ks),
+                                       antipodes=self.antipodes)
 
     def modules(self, views: int) -> dict:
         from mvtn_exp.selectors.hypotheses import HypothesisRace
