@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.engine.view_gradient import eval_mode, noise_generator, smoothed_view_gradient, surrogate
 
 from test_train_e2e import tiny
@@ -218,6 +219,28 @@ def test_no_probes_once_g_is_frozen(tmp_path, monkeypatch):
     groups = {g["name"]: g["params"] for g in state["param_groups"]}
     assert {int(state["state"][i]["step"]) for i in groups["selector"] if i in state["state"]} == {6}
     assert {int(state["state"][i]["step"]) for i in groups["mvnet"] if i in state["state"]} == {12}
+
+
+def test_g_moves_in_one_epoch_of_every_k(tmp_path, monkeypatch):
+    """selector.move_every=2 over 3 epochs of 6 steps: G probes and steps in epochs 1 and 3 only
+    (12 probe estimates, 12 AdamW steps for G, 18 for C), epoch 2 records no gradient for G, and a
+    resume from epoch 2 holds and moves as the whole run does."""
+    calls = count_probes(monkeypatch)
+    kw = {"selector.grad": "smoothed", "selector.probe_pairs": 1, "selector.move_every": 2}
+    cache = str(tmp_path / "cache")
+    m = train(tiny(cache, epochs=3, **kw), tmp_path / "run")
+    assert m["steps"] == 18 and len(calls) == 12
+    g = [h["grad_norm_selector"] for h in m["history"]]
+    assert g[0] > 0 and g[1] == 0.0 and g[2] > 0
+    state = checkpoint.load(tmp_path / "run" / "last.pt")["optimizer"]
+    groups = {g["name"]: g["params"] for g in state["param_groups"]}
+    assert {int(state["state"][i]["step"]) for i in groups["selector"] if i in state["state"]} == {12}
+    assert {int(state["state"][i]["step"]) for i in groups["mvnet"] if i in state["state"]} == {18}
+    train(tiny(cache, epochs=2, **kw), tmp_path / "a")
+    resumed = train(tiny(cache, epochs=3, ckpt_path=str(tmp_path / "a" / "last.pt"), **kw), tmp_path / "b")
+    assert resumed["confusion_matrix"] == m["confusion_matrix"]
+    with pytest.raises(ValueError, match="selector.move_every"):
+        as_config(tiny(cache, **{**kw, "selector.move_every": 0}))
 
 
 def test_smoothed_resume_is_exact(tmp_path):

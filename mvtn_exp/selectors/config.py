@@ -91,7 +91,9 @@ class LearnedSelectorConfig(SelectorConfig):
 
     G's optimiser (an AdamW group beside C's): ``lr``, ``beta1`` (first-moment decay), ``clip``
     (G's gradient L2 norm clipped before the step), ``stop_epoch`` (G's learning rate is 0 from
-    this 0-based epoch on; null: never). ``warmup_epochs``: G frozen for the first epochs while C
+    this 0-based epoch on; null: never), ``move_every`` (after the warm-up G moves in one epoch of
+    every k and holds its views for the k - 1 after it, while C learns from them; 1: every epoch).
+    ``warmup_epochs``: G frozen for the first epochs while C
     trains on ``warmup_views`` (u0: G's initial views; random; spherical; canonical: a circular
     ring at ``warmup_elevation`` degrees in each shape's principal frame, ``selectors/canonical.py``,
     so that C learns from one consistent view of every shape before G moves), ``warmup_num_views``
@@ -121,6 +123,7 @@ class LearnedSelectorConfig(SelectorConfig):
     beta1: float = 0.9
     clip: float = 30.0
     stop_epoch: Optional[int] = None
+    move_every: int = 1
     warmup_epochs: int = 0
     warmup_views: str = "u0"
     warmup_num_views: Optional[int] = None
@@ -141,7 +144,7 @@ class LearnedSelectorConfig(SelectorConfig):
 
     learned: ClassVar[bool] = True
     # keys that set how G trains, not what the model is: they may change when a run is resumed
-    training_keys: ClassVar[tuple] = ("lr", "beta1", "clip", "stop_epoch", "warmup_epochs", "warmup_views",
+    training_keys: ClassVar[tuple] = ("lr", "beta1", "clip", "stop_epoch", "move_every", "warmup_epochs", "warmup_views",
                                       "warmup_num_views", "warmup_elevation", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every",
                                       "probe_batched", "search_views", "search_every", "search_weight",
                                       "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
@@ -157,6 +160,7 @@ class LearnedSelectorConfig(SelectorConfig):
         at_least("selector.clip", self.clip, 0.0, strict=True)
         if self.stop_epoch is not None:
             at_least("selector.stop_epoch", self.stop_epoch, 0)
+        at_least("selector.move_every", self.move_every, 1)
         at_least("selector.warmup_epochs", self.warmup_epochs, 0)
         one_of("selector.warmup_views", self.warmup_views, WARMUP_VIEWS)
         if not -90.0 <= self.warmup_elevation <= 90.0:

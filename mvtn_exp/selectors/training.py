@@ -91,7 +91,8 @@ class SelectorTraining:
 
 class LearnedTraining(SelectorTraining):
     """The paper's: G trains by autograd through R on C's loss, in its own AdamW group (``lr``,
-    ``beta1``), its gradient clipped to ``clip``. For the first ``warmup_epochs`` epochs (and
+    ``beta1``), its gradient clipped to ``clip``; with ``move_every`` k it moves in one epoch of
+    every k only. For the first ``warmup_epochs`` epochs (and
     whenever the multi-view net holds the views) G is frozen and C trains on ``warmup_views``; from
     ``stop_epoch`` on, or at learning rate 0, C trains on G's views without G's gradient.
     ``bn_recalibrate``: C's BatchNorm statistics re-estimated before each validation."""
@@ -107,8 +108,10 @@ class LearnedTraining(SelectorTraining):
     def start_epoch(self, model, epoch: int, g_lr: Optional[float], hold_views: bool) -> None:
         trains = bool(model.parameter_groups()["selector"])
         self.warm = trains and (epoch < self.s.warmup_epochs or hold_views)
-        # G's learning rate is 0: C trains on G's views, and G's gradient is not computed
-        self.frozen = trains and not self.warm and g_lr == 0.0
+        # G's learning rate is 0, or G holds its views this epoch (move_every): C trains on G's views,
+        # and G's gradient is not computed
+        holding = (epoch - self.s.warmup_epochs) % self.s.move_every != 0
+        self.frozen = trains and not self.warm and (g_lr == 0.0 or holding)
         self.learning = trains and not self.warm and not self.frozen
 
     def warmup_views(self, model, batch: dict):
