@@ -243,6 +243,44 @@ def test_g_moves_in_one_epoch_of_every_k(tmp_path, monkeypatch):
         as_config(tiny(cache, **{**kw, "selector.move_every": 0}))
 
 
+def test_c_trains_on_jittered_views_while_g_probes_its_own(tmp_path, monkeypatch):
+    """selector.train_jitter=20: the training render is at G's views moved by noise of about 20
+    degrees (azimuth and elevation, fresh each step), the probes (eval mode) stay centred on G's
+    views; 0 renders G's views exactly; without the smoothed gradient it is refused."""
+    from mvtn_exp.model import MVTN
+
+    trained, probed, chosen = [], [], []
+    real_render, real_select = MVTN.render, MVTN.select
+
+    def render(self, batch, azim, elev, *rest):
+        (trained if self.training else probed).append((azim.detach().clone(), elev.detach().clone()))
+        return real_render(self, batch, azim, elev, *rest)
+
+    def select(self, batch, **kw):
+        out = real_select(self, batch, **kw)
+        chosen.append(tuple(v.detach().clone() for v in out[:2]))
+        return out
+
+    monkeypatch.setattr(MVTN, "render", render)
+    monkeypatch.setattr(MVTN, "select", select)
+    cache = str(tmp_path / "cache")
+    kw = {"selector.grad": "smoothed", "selector.probe_pairs": 1, "selector.bn_recalibrate": 0}
+    train(tiny(cache, epochs=1, **{**kw, "selector.train_jitter": 20.0}), tmp_path / "j")
+    train_steps = [c for c in chosen][:len(trained)]
+    moved = torch.cat([torch.cat([t[0] - c[0], t[1] - c[1]]).flatten() for t, c in zip(trained, train_steps)])
+    assert 12.0 < float(moved.std()) < 28.0 and abs(float(moved.mean())) < 6.0
+    first_probe = probed[0]  # the antithetic pair of step 1: centred on G's views
+    centre = ((probed[0][0] + probed[1][0]) / 2, (probed[0][1] + probed[1][1]) / 2)
+    torch.testing.assert_close(centre[0], chosen[0][0], atol=1e-3, rtol=0)
+    assert first_probe[0].shape == chosen[0][0].shape
+    trained.clear(), probed.clear(), chosen.clear()
+    train(tiny(cache, epochs=1, **kw), tmp_path / "plain")
+    for t, c in zip(trained, chosen):
+        assert torch.equal(t[0], c[0]) and torch.equal(t[1], c[1])
+    with pytest.raises(ValueError, match="selector.train_jitter=5.0"):
+        as_config(tiny(cache, **{"selector.train_jitter": 5.0}))
+
+
 def test_smoothed_resume_is_exact(tmp_path):
     cache = str(tmp_path / "cache")
     kw = {"selector.grad": "smoothed", "selector.probe_pairs": 1}

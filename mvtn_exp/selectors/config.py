@@ -102,7 +102,9 @@ class LearnedSelectorConfig(SelectorConfig):
     ``grad``: ``autograd`` (the paper's: through the differentiable renderer) or ``smoothed`` (the
     task loss smoothed over the views by a Gaussian of ``probe_sigma`` degrees, estimated from
     ``probe_pairs`` antithetic pairs of renders every ``probe_every`` steps, their renders in one
-    renderer call with ``probe_batched``; any renderer).
+    renderer call with ``probe_batched``; any renderer); ``train_jitter``: C trains on G's views
+    moved by Gaussian noise of this many degrees in azimuth and elevation, so that it does not
+    adapt to G's exact view (0: G's views; needs ``grad=smoothed``, whose probes stay at G's views).
     ``search``: C's loss read at ``search_views`` candidate directions over the sphere every
     ``search_every`` steps, each view pulled towards the best candidate near it with weight
     ``search_weight`` (``selectors/search.py``; any renderer).
@@ -132,6 +134,7 @@ class LearnedSelectorConfig(SelectorConfig):
     loss: str = "task"
     probe_pairs: int = 2
     probe_sigma: float = 10.0
+    train_jitter: float = 0.0
     probe_every: int = 1
     probe_batched: bool = False
     search_views: int = 12
@@ -145,7 +148,7 @@ class LearnedSelectorConfig(SelectorConfig):
     learned: ClassVar[bool] = True
     # keys that set how G trains, not what the model is: they may change when a run is resumed
     training_keys: ClassVar[tuple] = ("lr", "beta1", "clip", "stop_epoch", "move_every", "warmup_epochs", "warmup_views",
-                                      "warmup_num_views", "warmup_elevation", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every",
+                                      "warmup_num_views", "warmup_elevation", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every", "train_jitter",
                                       "probe_batched", "search_views", "search_every", "search_weight",
                                       "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
                                       "race_z", "race_batches", "race_mode", "cache")
@@ -183,6 +186,10 @@ class LearnedSelectorConfig(SelectorConfig):
                              "set selector.flip_explore=0")
         at_least("selector.probe_pairs", self.probe_pairs, 1)
         at_least("selector.probe_sigma", self.probe_sigma, 0.0, strict=True)
+        at_least("selector.train_jitter", self.train_jitter, 0.0)
+        if self.train_jitter > 0 and self.grad != "smoothed":
+            raise ValueError(f"selector.train_jitter={self.train_jitter}: C's views are moved off G's only with "
+                             "selector.grad=smoothed (G's gradient from probes at its own views)")
         at_least("selector.probe_every", self.probe_every, 1)
         if not 0.0 <= self.flip_explore < 1.0:
             raise ValueError(f"selector.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")

@@ -7,6 +7,8 @@ selector with ``grad=smoothed``, ``flip_explore > 0`` or ``hypotheses > 1``:
   task loss smoothed over the views, estimated from ``probe_pairs`` antithetic pairs of renders
   (``engine/view_gradient.py``) of G's own ``loss`` (``task`` or ``centered_logit``); with
   ``probe_batched`` every probe of a step rendered in one call (not while racing);
+- ``train_jitter``: C trains on G's views moved by Gaussian noise (degrees; the probes stay at
+  G's views), so that C does not adapt to G's exact view;
 - ``flip_explore``: some training views are rendered from their antipodes, and a view whose
   antipode had the lower loss turns round at the end of the epoch (``polarity.py``);
 - ``hypotheses`` H > 1 (``mvtn_poi``, ``poi``): for at most ``race_epochs`` epochs all H sets of
@@ -35,6 +37,14 @@ def hypothesis_losses(model, logits, images, labels, H: int, S: int, selector_lo
     with torch.no_grad(), view_gradient.eval_mode(model.mvnet):
         alone, _ = model.mvnet(split_images(images.detach(), H))
     return selector_loss(alone, labels.repeat_interleave(H)).reshape(-1, H)
+
+
+def jittered(views: tuple, degrees: float, generator: torch.Generator) -> tuple:
+    """``(azim, elev, dist)`` each ``[B, M]`` -> the same views moved by ``N(0, degrees^2)`` in azimuth
+    and elevation (detached: C's training views, not G's)."""
+    azim, elev, dist = (v.detach() for v in views)
+    noise = torch.randn((2, *azim.shape), generator=generator, dtype=torch.float64).to(azim)
+    return azim + degrees * noise[0], elev + degrees * noise[1], dist
 
 
 def flip_generator(seed: int, step: int) -> torch.Generator:
@@ -97,12 +107,15 @@ class ProbeTraining(LearnedTraining):
             if self.flips:  # some views from their antipodes (polarity.py)
                 views, flip_mask = model.polarity.explore(views, self.s.flip_explore, flip_generator(self.cfg.seed, step))
         labels = batch["labels"].to(model.device).repeat_interleave(S)  # [B * S]
+        seen = views
+        if self.smoothed and self.s.train_jitter > 0:  # C's views off G's (G's probes stay at G's)
+            seen = jittered(views, self.s.train_jitter, view_gradient.noise_generator(self.cfg.seed + 15_485_863, step))
         with timer.stage("render"), torch.set_grad_enabled(not self.smoothed):
-            images = model.render(batch, *views)  # smoothed: R is not differentiated
+            images = model.render(batch, *seen)  # smoothed: R is not differentiated
             if S > 1:
                 images = split_images(images, S)  # [B * H, M, 3, h, w]
         with timer.stage("backbone"):
-            logits, _ = model.classify(images, views if S == 1 else split_views(views, S))
+            logits, _ = model.classify(images, seen if S == 1 else split_views(seen, S))
             loss = model.mvnet.training_loss(logits, labels, loss_fn)
         if self.flips:
             model.polarity.record(self.per_shape_loss(logits.detach(), labels), flip_mask)
