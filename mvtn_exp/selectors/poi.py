@@ -52,6 +52,7 @@ from mvtn_exp.render import layouts
 from mvtn_exp.selectors.config import LearnedSelectorConfig, register
 from mvtn_exp.selectors.fixed import ViewSelector, Views
 from mvtn_exp.selectors.invariant_cache import InvariantCache
+from mvtn_exp.selectors.polarity import antipode
 
 if TYPE_CHECKING:  # pragma: no cover
     from mvtn_exp.schema import TrainConfig
@@ -142,10 +143,11 @@ class PointOfInterestSelector(ViewSelector):
             self.register_buffer("log_gain", log_gain, persistent=False)
         self.descriptors = InvariantCache(partial(invariant_descriptors, ks=self.ks), cache)
         azim0, elev0, _ = layouts.spherical(M * free, 1, distance=distance, sphere=sphere)
-        order = torch.arange(M * free).reshape(M, free).T.reshape(-1)  # hypothesis h, view m <- layout m * H + h
+        order = torch.arange(M * free).reshape(M, free).T.reshape(-1)  # hypothesis h, view m <- layout m * free + h
         azim0, elev0 = azim0[0, order], elev0[0, order]
         if antipodes:  # hypothesis free + h: hypothesis h's views from the opposite side
-            azim0, elev0 = torch.cat([azim0, torch.remainder(azim0 + 360.0, 360.0) - 180.0]), torch.cat([elev0, -elev0])
+            far = antipode(azim0, elev0)
+            azim0, elev0 = torch.cat([azim0, far[0]]), torch.cat([elev0, far[1]])
         self.register_buffer("azim0", azim0, persistent=False)  # [H * M], hypothesis-major
         self.register_buffer("elev0", elev0, persistent=False)
         a, e = torch.deg2rad(azim0), torch.deg2rad(elev0)
@@ -221,8 +223,9 @@ class PoiConfig(LearnedSelectorConfig):
     epoch renders all hypotheses for at most this many batches, then the race is decided for good on
     them (null: whole epochs); ``race_mode``: C classifies each hypothesis's views as a shape of its
     own (separate) or all H x M views pooled (pooled); ``antipodes``: the second half of the H
-    hypotheses are the first half's views from the opposite side (G scores H / 2). ``descriptors``: the subset G scores from
-    (``DESCRIPTORS``); ``ks``: the neighbourhood sizes (points) they are computed over."""
+    hypotheses are the first half's views from the opposite side (G scores H / 2).
+    ``descriptors``: the subset G scores from (``DESCRIPTORS``); ``ks``: the neighbourhood sizes
+    (points) they are computed over."""
 
     name: str = "mvtn_poi"
     gain: float = 8.0
