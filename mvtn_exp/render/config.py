@@ -79,6 +79,10 @@ class RendererConfig:
     # search
     tile_size: int = 32
     max_candidates: int = 1 << 21
+    # torch.compile the per-candidate maths (render/accel.py): faster soft renders after a one-time
+    # compile per process (measured in docs/results/renderer-speed.md); results equal eager's to
+    # float rounding. Needs a C++ compiler on CPU, Triton on CUDA
+    compile: bool = False
 
     def validate(self) -> "RendererConfig":
         def one_of(key, allowed):

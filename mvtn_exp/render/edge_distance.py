@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import torch
 
+from .accel import fused
+
 # far beyond any on-screen squared NDC distance: "no boundary edge near this pixel"
 FAR_SQ = 1.0e4
 
@@ -61,48 +63,54 @@ def segment_sqdist(ax, ay, bx, by, px, py):
     return torch.addcmul(rx * rx, ry, ry)
 
 
+@fused
+def _nearest_edge(vx, vy, corners, px, py, interior, valid):
+    """The forward maths of ``signed_sqdist`` (no autograd): (dist, and for the backward the
+    nearest edge's end point ids a, b, its t, residual rx, ry and the sign), each ``[N]``."""
+    ids = [corners[:, k].contiguous() for k in range(3)]
+    X = [vx.index_select(0, i) for i in ids]
+    Y = [vy.index_select(0, i) for i in ids]
+    area = triangle_area2(X, Y)
+    inside = None
+    d, t, rx, ry = [], [], [], []
+    for a, b in EDGES:
+        # barycentric k has the sign of the edge function of edge k over the area
+        lk = edge_function(X[a], Y[a], X[b], Y[b], px, py) / area
+        inside = lk >= 0 if inside is None else inside & (lk >= 0)
+        tk, rxk, ryk = nearest_on_segment(X[a], Y[a], X[b], Y[b], px, py)
+        d.append(torch.addcmul(rxk * rxk, ryk, ryk))
+        t.append(tk)
+        rx.append(rxk)
+        ry.append(ryk)
+    # outside: the nearest of the three edges; inside: of the edges that are not interior
+    d_in = d if interior is None else [torch.where(interior[:, k], FAR_SQ, d[k]) for k in range(3)]
+    d_use = [torch.where(inside, d_in[k], d[k]) for k in range(3)]
+    best = torch.zeros_like(ids[0], dtype=torch.uint8)
+    dmin = d_use[0]
+    for k in (1, 2):
+        closer = d_use[k] < dmin
+        best = torch.where(closer, k, best)
+        dmin = torch.where(closer, d_use[k], dmin)
+    sign = torch.where(inside, -1.0, 1.0).to(dmin.dtype)
+    dist = sign * dmin
+    flat = dmin >= FAR_SQ  # inside with every edge interior: a constant
+    if valid is not None:
+        dist = torch.where(valid, dist, FAR_SQ)
+        flat = flat | ~valid
+    sign = torch.where(flat, 0.0, sign)
+
+    def pick(vals):
+        return torch.where(best == 0, vals[0], torch.where(best == 1, vals[1], vals[2]))
+
+    return dist, pick([ids[a] for a, _ in EDGES]), pick([ids[b] for _, b in EDGES]), pick(t), pick(rx), pick(ry), sign
+
+
 class _SignedSqDist(torch.autograd.Function):
     @staticmethod
     def forward(ctx, vert_xy, corners, px, py, interior, valid):  # runs without autograd
-        vx, vy = vert_xy[:, 0].contiguous(), vert_xy[:, 1].contiguous()
-        ids = [corners[:, k].contiguous() for k in range(3)]
-        X = [vx.index_select(0, i) for i in ids]
-        Y = [vy.index_select(0, i) for i in ids]
-        area = triangle_area2(X, Y)
-        inside = None
-        d, t, rx, ry = [], [], [], []
-        for a, b in EDGES:
-            # barycentric k has the sign of the edge function of edge k over the area
-            lk = edge_function(X[a], Y[a], X[b], Y[b], px, py) / area
-            inside = lk >= 0 if inside is None else inside & (lk >= 0)
-            tk, rxk, ryk = nearest_on_segment(X[a], Y[a], X[b], Y[b], px, py)
-            d.append(torch.addcmul(rxk * rxk, ryk, ryk))
-            t.append(tk)
-            rx.append(rxk)
-            ry.append(ryk)
-        # outside: the nearest of the three edges; inside: of the edges that are not interior
-        d_in = d if interior is None else [torch.where(interior[:, k], FAR_SQ, d[k]) for k in range(3)]
-        d_use = [torch.where(inside, d_in[k], d[k]) for k in range(3)]
-        best = torch.zeros_like(ids[0], dtype=torch.uint8)
-        dmin = d_use[0]
-        for k in (1, 2):
-            closer = d_use[k] < dmin
-            best = torch.where(closer, k, best)
-            dmin = torch.where(closer, d_use[k], dmin)
-        sign = torch.where(inside, -1.0, 1.0).to(dmin.dtype)
-        dist = sign * dmin
-        flat = dmin >= FAR_SQ  # inside with every edge interior: a constant
-        if valid is not None:
-            dist = torch.where(valid, dist, FAR_SQ)
-            flat = flat | ~valid
-        sign = torch.where(flat, 0.0, sign)
-
-        def pick(vals):
-            return torch.where(best == 0, vals[0], torch.where(best == 1, vals[1], vals[2]))
-
-        a_id = pick([ids[a] for a, _ in EDGES])
-        b_id = pick([ids[b] for _, b in EDGES])
-        ctx.save_for_backward(a_id, b_id, pick(t), pick(rx), pick(ry), sign)
+        dist, *saved = _nearest_edge(vert_xy[:, 0].contiguous(), vert_xy[:, 1].contiguous(), corners, px, py,
+                                     interior, valid)
+        ctx.save_for_backward(*saved)
         ctx.num_verts = vert_xy.shape[0]
         return dist
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from . import tiles
+from .accel import fused
 from .edge_distance import barycentric_signs, covers, edge_function, segment_sqdist, signed_sqdist
 from .ops import take
 
@@ -148,6 +149,7 @@ def table_planes(table: torch.Tensor) -> list[torch.Tensor]:
     return list(table[TABLE_PLANES:TABLE_PLANES + 9].unbind(0))
 
 
+@fused
 def barycentrics(table: torch.Tensor, prim: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> list[torch.Tensor]:
     """Screen barycentrics ``[lambda_0, lambda_1, lambda_2]``, each ``[C]``, of the points x, y ``[C]``
     (NDC) in faces ``prim`` ``[C]`` (columns of ``table``)."""
@@ -157,12 +159,14 @@ def barycentrics(table: torch.Tensor, prim: torch.Tensor, x: torch.Tensor, y: to
     return [torch.addcmul(torch.addcmul(g(3 * k + 2), g(3 * k), x), g(3 * k + 1), y) for k in range(3)]
 
 
+@fused
 def inverse_depth(table: torch.Tensor, prim: torch.Tensor, lam: list[torch.Tensor]) -> torch.Tensor:
     """``sum_k lambda_k / z_k`` ``[C]``: the inverse depth at screen barycentrics ``lam`` in faces ``prim``."""
     iz = [table[TABLE_INV_Z + k].index_select(0, prim) for k in range(3)]
     return torch.addcmul(torch.addcmul(lam[0] * iz[0], lam[1], iz[1]), lam[2], iz[2])
 
 
+@fused
 def triangle_sqdist(table: torch.Tensor, prim: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Squared NDC distance ``[C]`` from the points x, y ``[C]`` to the triangles ``prim`` (their edges;
     callers tell inside from outside by the barycentrics)."""
@@ -310,6 +314,25 @@ def _hard_picks(pf: ProjectedFaces, start: int, stop: int, H: int, W: int, K: in
                else tiles.select_nearest(pix, depth, ids, K, num_pixels))
 
 
+@fused
+def _depth_and_bary(X, Y, Z, px, py, valid, need_bary: bool):
+    """Perspective-correct depth ``[P, K]`` and barycentrics ``[P, K, 3]`` (None unless ``need_bary``)
+    of pixel centres px, py ``[P, 1]`` in triangles with corners X, Y (NDC) and depths Z, each a
+    triple of ``[P, K]``; outside a triangle (soft edges) at its nearest point. Empty slots
+    (``valid`` False) get depth 0."""
+    lam = barycentric_signs(X, Y, px, py)
+    with torch.no_grad():
+        inside = covers(lam)
+    # outside the triangle (soft edges) attributes come from the nearest point of the triangle;
+    # in components (``ops.dot``): no size-3 reductions
+    lam = [torch.where(inside, lk, lk.clamp(min=0)) for lk in lam]
+    total = (lam[0] + lam[1] + lam[2]).clamp(min=1e-12)
+    zinv = [lk / total / zk.clamp(min=1e-12) for lk, zk in zip(lam, Z)]
+    zsum = (zinv[0] + zinv[1] + zinv[2]).clamp(min=1e-12)
+    zbuf = torch.where(valid, 1.0 / zsum, torch.zeros_like(zsum))
+    return zbuf, (torch.stack([zk / zsum for zk in zinv], -1) if need_bary else None)
+
+
 def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, need_bary: bool,
                    need_dist: bool, interior_edge: torch.Tensor | None, need_depth: bool = True) -> Fragments:
     """Differentiable barycentrics / depth / signed distance for the selected (pixel, face) pairs.
@@ -337,16 +360,5 @@ def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, 
         return Fragments(sel.pix, sel.prim, valid, None, None, dist)
     X = take(pf.vert_xy[:, 0], vv).unbind(-1)  # corner x, y, each [P, K]
     Y = take(pf.vert_xy[:, 1], vv).unbind(-1)
-    lam = barycentric_signs(X, Y, px, py)
-    with torch.no_grad():
-        inside = covers(lam)
-    # outside the triangle (soft edges) attributes come from the nearest point of the triangle;
-    # in components (``ops.dot``): no size-3 reductions
-    lam = [torch.where(inside, l, l.clamp(min=0)) for l in lam]
-    total = (lam[0] + lam[1] + lam[2]).clamp(min=1e-12)
-    z = take(pf.vert_z, vv).clamp(min=1e-12).unbind(-1)
-    zinv = [l / total / zk for l, zk in zip(lam, z)]
-    zsum = (zinv[0] + zinv[1] + zinv[2]).clamp(min=1e-12)
-    zbuf = torch.where(valid, 1.0 / zsum, torch.zeros_like(zsum))
-    bary = torch.stack([zk / zsum for zk in zinv], -1) if need_bary else None
+    zbuf, bary = _depth_and_bary(X, Y, take(pf.vert_z, vv).unbind(-1), px, py, valid, need_bary)
     return Fragments(sel.pix, sel.prim, valid, bary, zbuf, dist)

@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from ..data.shapes import Meshes, PointClouds
-from . import lod, mesh_raster, point_raster, shading, soft_search
+from . import accel, lod, mesh_raster, point_raster, shading, soft_search
 from .cameras import Cameras, camera_to_ndc, to_camera_packed
 from .config import RendererConfig
 from .ops import take, weighted3
@@ -60,10 +60,11 @@ class MultiViewRenderer(nn.Module):
             raise ValueError(f"renderer: views must be [B, M], got azim {tuple(azim.shape)}")
         if len(shapes) != azim.shape[0]:
             raise ValueError(f"renderer: {len(shapes)} shapes but views for {azim.shape[0]} (azim {tuple(azim.shape)})")
-        if isinstance(shapes, Meshes):
-            return self._render_meshes(shapes, azim, elev, dist)
-        if isinstance(shapes, PointClouds):
-            return self._render_points(shapes, azim, elev, dist)
+        with accel.compiled(self.cfg.compile):
+            if isinstance(shapes, Meshes):
+                return self._render_meshes(shapes, azim, elev, dist)
+            if isinstance(shapes, PointClouds):
+                return self._render_points(shapes, azim, elev, dist)
         raise TypeError(f"renderer: expected Meshes or PointClouds, got {type(shapes).__name__}")
 
     # ---------------------------------------------------------------- shared helpers

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from . import tiles
+from . import accel, tiles
+from .accel import fused
 from .edge_distance import covers
 from .mesh_raster import (SMALL_BOX_HARD, TABLE_CORNERS, ProjectedFaces, barycentrics, face_boxes, face_fragments,
                           face_table, inverse_depth, row_spans, table_planes, triangle_sqdist)
@@ -176,30 +177,90 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
         ys = faces.table[TABLE_CORNERS + 1:TABLE_CORNERS + 6:2]
         hole = (ys.amin(0), ys.amax(0))
     span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W, hole=hole)
+    if hidden_below is not None:
+        span = _unhidden_rows(span, faces, RowMin(hidden_below, chunks["H"], W), chunks["H"])
     out = []
+    r2 = radius**2
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
-        cand = tiles.concat(parts)
-        idx = None
-        if hidden_below is not None:
-            idx = torch.nonzero(faces.zl_max.index_select(0, cand.prim) >= hidden_below.index_select(0, cand.pix)).squeeze(1)
-            cand = tiles.Candidates(*(getattr(cand, k).index_select(0, idx) for k in ("prim", "pix", "x", "y")))
-        lam = barycentrics(faces.table, cand.prim, cand.x, cand.y)
-        inside = covers(lam)
-        sqd = triangle_sqdist(faces.table, cand.prim, cand.x, cand.y)
-        keep = (inside | (sqd <= radius**2)) if keep_inside else (~inside & (sqd <= radius**2))
-        keep = torch.nonzero(keep).squeeze(1)
-        prim = cand.prim.index_select(0, keep)
-        # outside the triangle: depth at the nearest point (negative barycentrics clamped)
-        lam = [l.index_select(0, keep).clamp(min=0) for l in lam]
-        total = lam[0] + lam[1] + lam[2]
-        depth = total / inverse_depth(faces.table, prim, lam).clamp(min=1e-12 * total)
-        fvk, pix = faces.fv.index_select(0, prim), cand.pix.index_select(0, keep)
-        if keep_inside:
-            out.append((pix, fvk, depth, depth))
-        else:
-            out.append((pix, fvk, ranking.depth_logit(faces.image.index_select(0, prim), depth), sqd.index_select(0, keep)))
+        for cand in parts:  # (not concatenated: a copy of every candidate for nothing)
+            hb = hidden_below
+            if hb is not None and not accel.enabled():
+                # eager: drop the hidden candidates before the maths (compiled, one fused loop tests them)
+                idx = torch.nonzero(faces.zl_max.index_select(0, cand.prim) >= hb.index_select(0, cand.pix)).squeeze(1)
+                cand, hb = tiles.Candidates(*(getattr(cand, k).index_select(0, idx) for k in ("prim", "pix", "x", "y"))), None
+            keep, depth, sqd = _near_values(faces.table, faces.zl_max, hb, cand.prim, cand.pix, cand.x, cand.y, r2, keep_inside)
+            keep = torch.nonzero(keep).squeeze(1)
+            prim, pix, depth = cand.prim.index_select(0, keep), cand.pix.index_select(0, keep), depth.index_select(0, keep)
+            fvk = faces.fv.index_select(0, prim)
+            if keep_inside:
+                out.append((pix, fvk, depth, depth))
+            else:
+                out.append((pix, fvk, ranking.depth_logit(faces.image.index_select(0, prim), depth), sqd.index_select(0, keep)))
     pix, prim, a, b = _cat(out, 4, faces)
     return pix, prim, a, (None if keep_inside else b)
+
+
+class RowMin:
+    """Range minimum over image rows: ``query(row, j0, j1)`` is the least of ``values`` over columns
+    j0..j1 of each ``row`` (a sparse table: level k holds the minimum of 2^k consecutive columns;
+    a query takes two overlapping blocks). values: ``[num_images * H * W]``; rows ``[R]`` are
+    ``image * H + i``; an empty range (j1 < j0) gives +inf."""
+
+    def __init__(self, values: torch.Tensor, H: int, W: int):
+        self.W, self.n = W, values.numel()
+        level, levels = values.view(-1, W), [values.view(-1, W)]
+        while 2 ** len(levels) <= W:
+            half = 2 ** (len(levels) - 1)
+            level = torch.minimum(level, F.pad(level[:, half:], (0, half), value=float("inf")))
+            levels.append(level)
+        self.table = torch.stack(levels).reshape(-1)
+        # floor(log2(n)) for n = 1..W (index 0 unused)
+        self.log2 = torch.tensor([0] + [n.bit_length() - 1 for n in range(1, W + 1)], device=values.device)
+
+    def query(self, row: torch.Tensor, j0: torch.Tensor, j1: torch.Tensor) -> torch.Tensor:
+        empty = j1.clamp(max=self.W - 1) < j0.clamp(min=0)
+        j0, j1 = j0.clamp(0, self.W - 1), j1.clamp(0, self.W - 1)  # (in range even where empty)
+        length = (j1 - j0 + 1).clamp(min=1)
+        k = self.log2.index_select(0, length)
+        base = k * self.n + row * self.W
+        least = torch.minimum(self.table.index_select(0, base + j0),
+                              self.table.index_select(0, base + j1 - (1 << k) + 1))
+        return torch.where(empty, float("inf"), least)
+
+
+def _unhidden_rows(span, faces: _Faces, row_min: RowMin, H: int):
+    """``span`` with the rows where a face is hidden in every pixel of its columns emptied: its
+    largest depth logit ``faces.zl_max`` is below the least ``hidden_below`` there. Each such pixel
+    would be dropped by the per-candidate test in ``_near`` anyway; this drops it before it is
+    enumerated (the same candidates survive)."""
+    def rows(p, yy):
+        cols = span(p, yy)
+        i = torch.round(((1 - yy) * H - 1) / 2).long()
+        row = faces.image.index_select(0, p) * H + i
+        hidden = faces.zl_max.index_select(0, p) < row_min.query(row, cols[0], cols[1])
+        return (cols[0], torch.where(hidden, -2, cols[1]), *cols[2:])
+
+    return rows
+
+
+@fused
+def _near_values(table, zl_max, hidden_below, prim, pix, x, y, r2: float, keep_inside: bool):
+    """Pass 2's maths for candidates ``[C]``: (keep mask, depth at the face's nearest point, squared
+    distance to the triangle), each ``[C]``. Kept: within ``r2`` (squared NDC) and, unless
+    ``keep_inside``, not covering the pixel; and, with ``hidden_below`` ``[num_pixels]``, not
+    hidden (the face's largest depth logit ``zl_max[prim]`` at least ``hidden_below[pix]``)."""
+    lam = barycentrics(table, prim, x, y)
+    inside = covers(lam)
+    sqd = triangle_sqdist(table, prim, x, y)
+    near = sqd <= r2
+    keep = (inside | near) if keep_inside else (~inside & near)
+    if hidden_below is not None:
+        keep = keep & (zl_max.index_select(0, prim) >= hidden_below.index_select(0, pix))
+    # outside the triangle: depth at the nearest point (negative barycentrics clamped)
+    lam = [lk.clamp(min=0) for lk in lam]
+    total = lam[0] + lam[1] + lam[2]
+    depth = total / inverse_depth(table, prim, lam).clamp(min=1e-12 * total)
+    return keep, depth, sqd
 
 
 # screen tiles of the hidden-face test: a face is skipped when it is hidden in every tile its box touches

@@ -26,6 +26,8 @@ from typing import Iterator
 
 import torch
 
+from .accel import fused
+
 
 @dataclass
 class PixelBoxes:
@@ -125,6 +127,7 @@ def concat(parts: tuple[Candidates, ...]) -> Candidates:
     return Candidates(*(torch.cat([getattr(a, k) for a in parts]) for k in ("prim", "pix", "x", "y")))
 
 
+@fused
 def _enumerate_boxes(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, dtype, owner) -> Candidates:
     dev = sel.device
     j0, i0 = boxes.j0.index_select(0, sel), boxes.i0.index_select(0, sel)
@@ -142,6 +145,7 @@ def _enumerate_boxes(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, dtype
     return Candidates(p, pix, (2 * j + 1).to(dtype) / W - 1, 1 - (2 * i + 1).to(dtype) / H)
 
 
+@fused
 def _enumerate_rows(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner) -> Candidates:
     dev = sel.device
     i0 = boxes.i0.index_select(0, sel)
