@@ -41,7 +41,7 @@ import torch
 
 from ..data.shapes import Meshes, PointClouds
 from ..models.backbones import resnet18
-from ..render import layouts, lod, mesh_raster
+from ..render import accel, layouts, lod, mesh_raster
 from ..render.renderer import MultiViewRenderer
 from . import edge_error
 from .dense import dense_pairs, dense_search
@@ -66,6 +66,7 @@ class BenchOptions:
     progress: bool = True
     modules: bool = True  # the paper's module table (bench/modules.py)
     scaling: bool = True  # time and memory against faces, pixels, views, batch (bench/scaling.py)
+    compiled: bool = True  # the soft targets again with renderer.compile=true (where torch.compile runs)
 
 
 @dataclass
@@ -245,6 +246,7 @@ class Results:
     lod: list = field(default_factory=list)
     batch8: list = field(default_factory=list)
     paired: dict = field(default_factory=dict)  # target key -> (numerator s, denominator s), timed alternately
+    compile_first_s: dict = field(default_factory=dict)  # shading -> seconds of the first compiled call
     edges: list = field(default_factory=list)
     modules: list = field(default_factory=list)
     scaling: list = field(default_factory=list)
@@ -407,6 +409,14 @@ class Bench:
         sides["100k_lod"] = (lambda: render("torus-100k", 1, lod=True), small)
         for key, (make, den) in sides.items():
             self.res.paired[key] = paired_times(make(), den, self.dev, self.opts.repeats, 2 * self.opts.time_budget_s)
+        if self.opts.compiled and accel.unavailable(self.dev.type) is None:
+            for shading in ("smooth", "flat"):
+                fn = render(*PAIRED_TARGETS[shading], compile=True)
+                t0 = time.perf_counter()
+                fn()  # compiles (or loads torch's on-disk compile cache)
+                self.res.compile_first_s[shading] = time.perf_counter() - t0
+                self.res.paired[f"{shading}_compiled"] = paired_times(fn, resnet_fwd_bwd, self.dev, self.opts.repeats,
+                                                                      2 * self.opts.time_budget_s)
 
     def job_batch8(self, kind: str) -> None:
         g = self.grid
@@ -529,6 +539,17 @@ def targets(bench: Bench) -> list[dict]:
     for shading, factor in (("smooth", 1.0), ("flat", 1.0)):
         out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
                              shading, bench.find_grid("torus-20k", S, M, 8, shading), factor))
+    unavailable = accel.unavailable(bench.dev.type)
+    for shading in ("smooth", "flat"):
+        key = f"{shading}_compiled"
+        first = res.compile_first_s.get(shading)
+        title = (f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}, renderer.compile=true"
+                 + (f" (first call {first:.1f} s)" if first is not None else "") + f": fwd+bwd vs ResNet-18 fwd+bwd on {M} images")
+        if key in res.paired:
+            out.append(vs_resnet(title, key, None, 1.0))
+        else:
+            why = quick if bench.opts.quick else (unavailable or ("compiled=false" if not bench.opts.compiled else "not measured"))
+            out.append(_target(title, "-", "<= 1 x ResNet-18", None, why))
     out.append(vs_resnet(f"2048 points, {M} views, {S} px, K=8: fwd+bwd vs ResNet-18 fwd+bwd on {M} images", "points",
                          bench.find_grid("points-2048", S, M, 8), 0.1))
 

@@ -34,7 +34,8 @@ class BenchAppConfig:
     repeats: most timed runs per measurement (median); time_budget_s: seconds a measurement aims for
     (slow configs run fewer times, at least once). device: cpu | cuda. threads: torch.set_num_threads
     (null: leave torch's default). dense_max_pairs: run the dense reference only up to this many
-    (pixel, face) pairs. progress: tqdm bar on stderr.
+    (pixel, face) pairs. progress: tqdm bar on stderr. compiled: the soft targets again with
+    ``renderer.compile=true`` (skipped, with the reason, where torch.compile cannot run).
     """
 
     quick: bool = False
@@ -47,6 +48,7 @@ class BenchAppConfig:
     progress: bool = True
     modules: bool = True
     scaling: bool = True
+    compiled: bool = True
 
     def validate(self) -> "BenchAppConfig":
         from ..checks import at_least
@@ -102,7 +104,7 @@ def _app(cfg) -> None:
         torch.set_num_threads(obj.threads)
     opts = BenchOptions(quick=obj.quick, repeats=obj.repeats, device=obj.device, time_budget_s=obj.time_budget_s,
                         dense_max_pairs=obj.dense_max_pairs, seed=obj.seed, progress=obj.progress,
-                        modules=obj.modules, scaling=obj.scaling)
+                        modules=obj.modules, scaling=obj.scaling, compiled=obj.compiled)
     run_bench(opts, Path(HydraConfig.get().runtime.output_dir))
 
 
