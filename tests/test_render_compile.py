@@ -133,3 +133,16 @@ def test_compile_without_a_compiler_is_refused_in_one_line(monkeypatch):
     with pytest.raises(ValueError, match=r"renderer.compile=true needs a C\+\+ compiler"):
         as_config({"renderer": {"compile": True}}).validate()
     assert mesh_raster.barycentrics.eager is not None  # the eager definition stays reachable
+
+
+@pytest.mark.skipif(accel.unavailable("cpu") is not None, reason=str(accel.unavailable("cpu")))
+def test_compile_time_study_separates_the_compile_from_the_render():
+    from studies import study
+
+    compile_time = study("compile_time")
+    rows = compile_time.in_fresh_process("warm", sections=8, size=24, views=2)
+    assert [r["shading"] for r in rows] == list(compile_time.SHADINGS) and rows[0]["faces"] == 128
+    smooth = rows[0]
+    # the first call traces and compiles (or loads the compile cache): far dearer than a render
+    assert smooth["first_s"] > 5 * smooth["second_s"] > 0
+    assert "| warm | smooth | 128 |" in compile_time.to_markdown(rows)
