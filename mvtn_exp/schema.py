@@ -279,12 +279,6 @@ class TrainConfig:
             raise ValueError(f"renderer.image_size={self.renderer.image_size} differs from image_size={self.image_size}: "
                              "set the top-level image_size")
         self.renderer.validate()
-        if self.renderer.compile:
-            from .render.accel import unavailable
-
-            problem = unavailable(self.device.split(":")[0])
-            if problem:
-                raise ValueError(problem)
         return self
 
 

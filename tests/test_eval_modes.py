@@ -106,3 +106,21 @@ def test_eval_writes_under_output_dir_and_refuses_a_foreign_root(ckpt, tmp_path)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
     assert "not a synthetic cache file" in bad.stderr and str(real) in bad.stderr
     assert sorted(p.relative_to(real) for p in real.rglob("*")) == before
+
+
+def test_a_compiled_run_evaluates_eagerly_where_compile_cannot_run(ckpt, tmp_path, monkeypatch, capsys):
+    """``renderer.compile`` is an accelerator, not part of the model: a checkpoint trained with it is
+    evaluated eagerly, with a note, on a machine where torch.compile cannot run."""
+    import torch
+
+    from mvtn_exp.engine import checkpoint
+    from mvtn_exp.render import accel
+
+    state = checkpoint.load(str(ckpt))
+    state["config"]["renderer"]["compile"] = True
+    compiled_ckpt = tmp_path / "compiled.pt"
+    torch.save(state, compiled_ckpt)
+    monkeypatch.setattr(accel, "unavailable", lambda device_type: "renderer.compile=true needs a C++ compiler on CPU")
+    out = _eval(compiled_ckpt, tmp_path / "eval")
+    assert "rendering eagerly" in capsys.readouterr().err
+    assert out["test_acc"] == _eval(ckpt, tmp_path / "eager")["test_acc"]

@@ -26,17 +26,20 @@ def _torus(sections: int = 24) -> Meshes:
 VIEWS = (torch.tensor([[20.0, 200.0, 90.0]]), torch.tensor([[35.0, -60.0, 5.0]]))
 
 
-@pytest.mark.parametrize("W", [1, 7, 16, 37])
-def test_row_min_is_the_minimum_over_each_range(W):
+@pytest.mark.parametrize("W,longest", [(1, None), (7, None), (16, None), (37, None), (37, 5), (64, 9)])
+def test_row_min_is_the_minimum_over_each_range(W, longest):
     g = torch.Generator().manual_seed(W)
     H, images = 3, 2
-    values = torch.randn(images * H * W, generator=g)
+    values = torch.randn(images * H * W, generator=g, dtype=torch.float64)
     values[::5] = float("-inf")
-    rm = soft_search.RowMin(values, H, W)
+    rm = soft_search.RowMin(values, H, W, longest)
     rows = torch.randint(0, images * H, (400,), generator=g)
     j0 = torch.randint(-2, W + 1, (400,), generator=g)
     j1 = torch.randint(-2, W + 2, (400,), generator=g)
+    if longest is not None:  # callers clip their ranges to at most ``longest`` columns
+        j1 = torch.minimum(j1, j0.clamp(min=0) + longest - 1)
     got = rm.query(rows, j0, j1)
+    assert got.dtype == values.dtype
     grid = values.view(-1, W)
     for r, a, b, v in zip(rows.tolist(), j0.tolist(), j1.tolist(), got.tolist()):
         a, b = max(a, 0), min(b, W - 1)
@@ -82,7 +85,8 @@ def test_hidden_rows_are_emptied_and_visible_ones_kept():
     def span(p, yy):  # face 0: columns 0-3, face 1: 0-3, face 2: 4-7
         return torch.tensor([0, 0, 4]), torch.tensor([3, 3, 7])
 
-    rows = soft_search._unhidden_rows(span, faces, soft_search.RowMin(hidden_below, H, W), H)
+    boxes = tiles.PixelBoxes(faces.image, torch.zeros(3, dtype=torch.long), torch.full((3,), W - 1), None, None)
+    rows = soft_search._unhidden_rows(span, faces, boxes, soft_search.RowMin(hidden_below, H, W), H)
     j0, j1 = rows(torch.arange(3), torch.zeros(3))
     # face 0 is behind everywhere in its columns: emptied; face 1 is in front; face 2 reaches the rim
     assert (j1 < j0).tolist() == [True, False, False]
@@ -126,23 +130,48 @@ def test_compile_off_runs_nothing_compiled():
 
 
 def test_compile_without_a_compiler_is_refused_in_one_line(monkeypatch):
-    monkeypatch.setattr(accel.shutil, "which", lambda name: None)
-    assert "C++ compiler" in accel.unavailable("cpu")
+    from mvtn_exp.cli.train import validate_for_training
     from mvtn_exp.engine.trainer import as_config
 
+    cfg = as_config({"renderer": {"compile": True}})  # a stored config is not checked against the machine
+    monkeypatch.setattr(accel.shutil, "which", lambda name: None)
+    assert "C++ compiler" in accel.unavailable("cpu")
     with pytest.raises(ValueError, match=r"renderer.compile=true needs a C\+\+ compiler"):
-        as_config({"renderer": {"compile": True}}).validate()
+        validate_for_training(cfg)
+    monkeypatch.undo()
+    monkeypatch.setattr(accel.sysconfig if hasattr(accel, "sysconfig") else __import__("sysconfig"), "get_paths",
+                        lambda: {"include": "/nonexistent-include"})
+    assert "Python.h" in accel.unavailable("cpu")
     assert mesh_raster.barycentrics.eager is not None  # the eager definition stays reachable
 
 
+def test_a_failing_compile_is_one_line_naming_the_option(monkeypatch):
+    import torch._dynamo.exc as dynamo_exc
+
+    def broken(fn, **kw):
+        def call(*a, **k):
+            raise dynamo_exc.BackendCompilerFailed(lambda: None, RuntimeError("InvalidCxxCompiler: no working compiler"), None)
+        return call
+
+    @accel.fused
+    def double(x):
+        return 2 * x
+
+    monkeypatch.setattr(torch, "compile", broken)
+    assert torch.equal(double(torch.ones(2)), torch.full((2,), 2.0))  # eager outside compiled(True)
+    with accel.compiled(True), pytest.raises(accel.CompileFailed, match="renderer.compile=false") as info:
+        double(torch.ones(2))
+    assert isinstance(info.value, ValueError) and "\n" not in str(info.value)
+
+
+@pytest.mark.slow  # two fresh processes, the first compiling from an empty cache (about a minute)
 @pytest.mark.skipif(accel.unavailable("cpu") is not None, reason=str(accel.unavailable("cpu")))
 def test_compile_time_study_separates_the_compile_from_the_render():
     from studies import study
 
     compile_time = study("compile_time")
-    rows = compile_time.in_fresh_process("warm", sections=8, size=24, views=2)
-    assert [r["shading"] for r in rows] == list(compile_time.SHADINGS) and rows[0]["faces"] == 128
-    smooth = rows[0]
-    # the first call traces and compiles (or loads the compile cache): far dearer than a render
-    assert smooth["first_s"] > 5 * smooth["second_s"] > 0
-    assert "| warm | smooth | 128 |" in compile_time.to_markdown(rows)
+    row = compile_time.in_fresh_process("warm", "flat", sections=8, size=24, views=2)
+    assert row["shading"] == "flat" and row["faces"] == 128 and row["cache"] == "warm"
+    # the first call traces and compiles (or loads its compile cache): far dearer than a render
+    assert row["first_s"] > 5 * row["second_s"] > 0
+    assert "| warm | flat | 128 |" in compile_time.to_markdown([row])

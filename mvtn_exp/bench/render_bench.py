@@ -544,7 +544,8 @@ def targets(bench: Bench) -> list[dict]:
         key = f"{shading}_compiled"
         first = res.compile_first_s.get(shading)
         title = (f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}, renderer.compile=true"
-                 + (f" (first call {first:.1f} s)" if first is not None else "") + f": fwd+bwd vs ResNet-18 fwd+bwd on {M} images")
+                 + (f" (first call {first:.1f} s{', after the smooth row compiled the shared parts' if shading == 'flat' else ''})"
+                    if first is not None else "") + f": fwd+bwd vs ResNet-18 fwd+bwd on {M} images")
         if key in res.paired:
             out.append(vs_resnet(title, key, None, 1.0))
         else:

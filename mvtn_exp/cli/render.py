@@ -53,6 +53,12 @@ class RenderAppConfig:
         from ..schema import check_device
 
         check_device("device", self.device)
+        if self.renderer.compile:
+            from ..render.accel import unavailable
+
+            problem = unavailable(self.device.split(":")[0])
+            if problem:
+                raise ValueError(problem)
         return self
 
 

@@ -26,6 +26,7 @@ from ..engine import run_dir as run_dir_state
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
 from ..schema import TrainConfig, register_configs
+from ..render import accel
 from .common import check_overrides, check_writable, mark_failed, os_error_text
 
 register_configs()
@@ -359,8 +360,13 @@ def resume_sweep(argv: list[str]) -> list[str]:
 
 def validate_for_training(cfg: TrainConfig) -> TrainConfig:
     """``TrainConfig.validate``, then the files a new run reads must exist: ``backbone.weights`` and
-    ``selector.from_ckpt`` (one line naming the key; a stored config is not checked for them)."""
+    ``selector.from_ckpt``, and ``renderer.compile=true`` must be able to run on ``device`` (one line
+    naming the key; a stored config is not checked for them)."""
     cfg.validate()
+    if cfg.renderer.compile:
+        problem = accel.unavailable(cfg.device.split(":")[0])
+        if problem:
+            raise ValueError(problem)
     for key, path in (("backbone.weights", cfg.backbone.weights), ("selector.from_ckpt", getattr(cfg.selector, "from_ckpt", None))):
         if path and not Path(path).is_file():
             raise ValueError(f"{key}={path!r}: no such file (a local file is expected; nothing is downloaded)")

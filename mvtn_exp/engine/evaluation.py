@@ -1,6 +1,7 @@
 """``evaluate_checkpoint``: rebuild MVTN from the config stored in a checkpoint and evaluate one split."""
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -9,6 +10,7 @@ import torch
 
 from ..data.datasets import build_dataset
 from ..model import build_mvtn
+from ..render import accel
 from ..schema import EvalConfig, TrainConfig
 from ..tasks import classification
 from . import checkpoint, eval_modes
@@ -51,6 +53,11 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
         cfg.dataset = replace(cfg.dataset, root=ecfg.root)
     cfg.logger.progress = ecfg.progress
     device = torch.device(cfg.device)
+    if cfg.renderer.compile and accel.unavailable(device.type):
+        # compile is an accelerator of the same renderer, not part of the model: evaluate eagerly
+        print(f"mvtn-eval: note: {accel.unavailable(device.type)}; rendering eagerly (the same images to float "
+              "rounding)", file=sys.stderr)
+        cfg.renderer.compile = False
 
     dataset = build_dataset(cfg.dataset, ecfg.split, progress=ecfg.progress)
     classes = list(dataset.classes)

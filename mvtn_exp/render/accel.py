@@ -15,6 +15,7 @@ import contextlib
 import contextvars
 import functools
 import shutil
+from pathlib import Path
 from typing import Callable
 
 import torch
@@ -33,10 +34,32 @@ def fused(fn: Callable) -> Callable:
             return fn(*args, **kwargs)
         if compiled_fn is None:
             compiled_fn = torch.compile(fn, dynamic=True)
-        return compiled_fn(*args, **kwargs)
+        try:
+            return compiled_fn(*args, **kwargs)
+        except _compile_errors() as exc:  # the machine's compiler failed, not the maths: one line
+            first = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), type(exc).__name__)
+            raise CompileFailed(f"renderer.compile=true: torch.compile failed on this machine ({first[:200]}); "
+                                "set renderer.compile=false to render eagerly") from exc
 
     call.eager = fn
     return call
+
+
+class CompileFailed(ValueError):
+    """``torch.compile`` could not build a ``@fused`` function here (a broken or missing compiler)."""
+
+
+def _compile_errors() -> tuple:
+    """The exception types of a failed compile (backend or code generator), as this torch names them."""
+    import torch._dynamo.exc as dynamo_exc
+
+    kinds = [dynamo_exc.BackendCompilerFailed]
+    try:
+        from torch._inductor.exc import InductorError
+        kinds.append(InductorError)
+    except ImportError:  # (older torch)
+        pass
+    return tuple(kinds)
 
 
 def enabled() -> bool:
@@ -59,12 +82,19 @@ def unavailable(device_type: str) -> str | None:
     code generator needs a C++ compiler; on CUDA it needs Triton."""
     if device_type == "cpu":
         import os
+        import sysconfig
 
         cxx = os.environ.get("CXX", "g++")
-        return None if shutil.which(cxx) else f"renderer.compile=true needs a C++ compiler on CPU ({cxx!r} is not on PATH)"
+        if not shutil.which(cxx):
+            return f"renderer.compile=true needs a C++ compiler on CPU ({cxx!r} is not on PATH)"
+        header = Path(sysconfig.get_paths()["include"]) / "Python.h"
+        if not header.is_file():
+            return f"renderer.compile=true needs Python's C headers on CPU ({header} is missing: install python3-dev)"
     if device_type == "cuda":
         try:
-            import triton  # noqa: F401
-        except ImportError:
-            return "renderer.compile=true needs Triton on CUDA (not installed)"
+            from torch.utils._triton import has_triton
+        except ImportError:  # (older torch)
+            has_triton = None
+        if has_triton is None or not has_triton():
+            return "renderer.compile=true needs Triton for this GPU on CUDA (not installed, or the GPU is too old for it)"
     return None

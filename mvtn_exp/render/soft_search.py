@@ -178,7 +178,8 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
         hole = (ys.amin(0), ys.amax(0))
     span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W, hole=hole)
     if hidden_below is not None:
-        span = _unhidden_rows(span, faces, RowMin(hidden_below, chunks["H"], W), chunks["H"])
+        widest = int((boxes.j1 - boxes.j0 + 1).max()) if len(boxes.j0) else 1
+        span = _unhidden_rows(span, faces, boxes, RowMin(hidden_below, chunks["H"], W, widest), chunks["H"])
     out = []
     r2 = radius**2
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
@@ -206,16 +207,21 @@ class RowMin:
     a query takes two overlapping blocks). values: ``[num_images * H * W]``; rows ``[R]`` are
     ``image * H + i``; an empty range (j1 < j0) gives +inf."""
 
-    def __init__(self, values: torch.Tensor, H: int, W: int):
+    def __init__(self, values: torch.Tensor, H: int, W: int, longest: int | None = None):
+        """``longest``: the widest range that will be queried (levels beyond it are not built, and a
+        longer query would miss its middle columns: callers clip their ranges); None: W."""
         self.W, self.n = W, values.numel()
-        level, levels = values.view(-1, W), [values.view(-1, W)]
-        while 2 ** len(levels) <= W:
-            half = 2 ** (len(levels) - 1)
-            level = torch.minimum(level, F.pad(level[:, half:], (0, half), value=float("inf")))
-            levels.append(level)
-        self.table = torch.stack(levels).reshape(-1)
-        # floor(log2(n)) for n = 1..W (index 0 unused)
-        self.log2 = torch.tensor([0] + [n.bit_length() - 1 for n in range(1, W + 1)], device=values.device)
+        self.longest = max(1, min(W, W if longest is None else int(longest)))
+        levels = self.longest.bit_length()
+        table = torch.empty(levels, self.n // W, W, dtype=values.dtype, device=values.device)
+        table[0] = values.view(-1, W)
+        for k in range(1, levels):  # level k: the minimum of columns j .. j + 2^k - 1 (clipped at W)
+            half = 1 << (k - 1)
+            torch.minimum(table[k - 1, :, :W - half], table[k - 1, :, half:], out=table[k, :, :W - half])
+            table[k, :, W - half:] = table[k - 1, :, W - half:]
+        self.table = table.view(-1)
+        # floor(log2(n)) for n = 1..longest (index 0 unused)
+        self.log2 = torch.tensor([0] + [n.bit_length() - 1 for n in range(1, self.longest + 1)], device=values.device)
 
     def query(self, row: torch.Tensor, j0: torch.Tensor, j1: torch.Tensor) -> torch.Tensor:
         empty = j1.clamp(max=self.W - 1) < j0.clamp(min=0)
@@ -228,16 +234,19 @@ class RowMin:
         return torch.where(empty, float("inf"), least)
 
 
-def _unhidden_rows(span, faces: _Faces, row_min: RowMin, H: int):
+def _unhidden_rows(span, faces: _Faces, boxes: tiles.PixelBoxes, row_min: RowMin, H: int):
     """``span`` with the rows where a face is hidden in every pixel of its columns emptied: its
-    largest depth logit ``faces.zl_max`` is below the least ``hidden_below`` there. Each such pixel
-    would be dropped by the per-candidate test in ``_near`` anyway; this drops it before it is
-    enumerated (the same candidates survive)."""
+    largest depth logit ``faces.zl_max`` is below the least ``hidden_below`` there (the columns
+    clipped to the face's box ``boxes``, as they are enumerated). Each such pixel would be dropped
+    by the per-candidate test in ``_near`` anyway; this drops it before it is enumerated (the same
+    candidates survive)."""
     def rows(p, yy):
         cols = span(p, yy)
         i = torch.round(((1 - yy) * H - 1) / 2).long()
         row = faces.image.index_select(0, p) * H + i
-        hidden = faces.zl_max.index_select(0, p) < row_min.query(row, cols[0], cols[1])
+        j0 = torch.maximum(cols[0], boxes.j0.index_select(0, p))
+        j1 = torch.minimum(cols[1], boxes.j1.index_select(0, p))
+        hidden = faces.zl_max.index_select(0, p) < row_min.query(row, j0, j1)
         return (cols[0], torch.where(hidden, -2, cols[1]), *cols[2:])
 
     return rows

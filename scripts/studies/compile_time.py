@@ -1,11 +1,11 @@
 """What ``renderer.compile=true`` costs before it pays: the first compiled render against the next.
 
 ``python scripts/studies/compile_time.py`` renders ``mvtn-bench``'s soft target rows (the 20k-face
-torus, 12 views, 224 px, K = 8, smooth then flat, forward+backward with camera gradients) with the
-compiled renderer in a fresh process per cache state: ``cold`` (an empty torch compile cache: a new
-``TORCHINDUCTOR_CACHE_DIR``, what a new machine pays once) and ``warm`` (the user's cache, as a
-second run on the same machine finds it). It prints, per state and shading, the first call's
-seconds (compile included) and the second's. ``--sections`` / ``--size`` / ``--views`` shrink the
+torus, 12 views, 224 px, K = 8, smooth and flat, forward+backward with camera gradients) with the
+compiled renderer, each shading in a fresh process per cache state: ``cold`` (an empty torch compile
+cache, a new ``TORCHINDUCTOR_CACHE_DIR``: what a new machine pays once) and ``warm`` (a cache of its
+own that one earlier process filled with the same render: what every later run pays). It prints the
+first call's seconds (compile included) and the second's. ``--sections`` / ``--size`` / ``--views`` shrink the
 scene (the test runs it tiny).
 """
 from __future__ import annotations
@@ -20,8 +20,8 @@ import tempfile
 SHADINGS = ("smooth", "flat")
 
 
-def measure(sections: int = 100, size: int = 224, views: int = 12) -> list[dict]:
-    """In this process: the first and second compiled forward+backward of each shading."""
+def measure(shading: str, sections: int = 100, size: int = 224, views: int = 12) -> dict:
+    """In this process: the first and second compiled forward+backward of one shading."""
     import time
 
     import torch
@@ -30,28 +30,30 @@ def measure(sections: int = 100, size: int = 224, views: int = 12) -> list[dict]
 
     dev = torch.device("cpu")
     shape = torus_of(sections, dev, f"torus-{2 * sections * sections}")
-    rows = []
-    for shading in SHADINGS:
-        fb = render_fns(renderer_for(shape, size, 8, shading, compile=True), shape, Views(views, 1, dev))[1]
-        times = []
-        for _ in range(2):
-            t0 = time.perf_counter()
-            fb()
-            times.append(time.perf_counter() - t0)
-        rows.append(dict(shading=shading, faces=2 * sections * sections, first_s=times[0], second_s=times[1]))
-    return rows
+    fb = render_fns(renderer_for(shape, size, 8, shading, compile=True), shape, Views(views, 1, dev))[1]
+    times = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        fb()
+        times.append(time.perf_counter() - t0)
+    return dict(shading=shading, faces=2 * sections * sections, first_s=times[0], second_s=times[1])
 
 
-def in_fresh_process(cache: str, sections: int, size: int, views: int) -> list[dict]:
-    """``measure`` in a new process; ``cache``: ``cold`` (a new, empty compile cache) or ``warm``."""
-    env = dict(os.environ)
+def _run(cache_dir: str, shading: str, sections: int, size: int, views: int) -> dict:
+    env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=cache_dir)
+    code = (f"import json, sys; sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r}); "
+            f"import compile_time as c; print(json.dumps(c.measure({shading!r}, {sections}, {size}, {views})))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def in_fresh_process(cache: str, shading: str, sections: int = 100, size: int = 224, views: int = 12) -> dict:
+    """``measure`` in a new process with a compile cache of its own: ``cold`` (empty) or ``warm``
+    (filled by one earlier process that rendered the same)."""
     with tempfile.TemporaryDirectory() as tmp:
-        if cache == "cold":
-            env["TORCHINDUCTOR_CACHE_DIR"] = tmp
-        code = (f"import json, sys; sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r}); "
-                f"import compile_time as c; print(json.dumps(c.measure({sections}, {size}, {views})))")
-        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
-    return [dict(row, cache=cache) for row in json.loads(out.strip().splitlines()[-1])]
+        if cache == "warm":
+            _run(tmp, shading, sections, size, views)
+        return dict(_run(tmp, shading, sections, size, views), cache=cache)
 
 
 def to_markdown(rows: list[dict]) -> str:
@@ -67,7 +69,7 @@ def main(argv=None) -> None:
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--cache", nargs="+", default=["cold", "warm"], choices=["cold", "warm"])
     a = ap.parse_args(argv)
-    rows = [row for cache in a.cache for row in in_fresh_process(cache, a.sections, a.size, a.views)]
+    rows = [in_fresh_process(cache, shading, a.sections, a.size, a.views) for cache in a.cache for shading in SHADINGS]
     print(to_markdown(rows))
 
 
