@@ -54,11 +54,9 @@ class RenderAppConfig:
 
         check_device("device", self.device)
         if self.renderer.compile:
-            from ..render.accel import unavailable
+            from ..render.accel import require
 
-            problem = unavailable(self.device.split(":")[0])
-            if problem:
-                raise ValueError(problem)
+            require(self.device)
         return self
 
 

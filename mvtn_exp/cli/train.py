@@ -364,9 +364,7 @@ def validate_for_training(cfg: TrainConfig) -> TrainConfig:
     naming the key; a stored config is not checked for them)."""
     cfg.validate()
     if cfg.renderer.compile:
-        problem = accel.unavailable(cfg.device.split(":")[0])
-        if problem:
-            raise ValueError(problem)
+        accel.require(cfg.device)
     for key, path in (("backbone.weights", cfg.backbone.weights), ("selector.from_ckpt", getattr(cfg.selector, "from_ckpt", None))):
         if path and not Path(path).is_file():
             raise ValueError(f"{key}={path!r}: no such file (a local file is expected; nothing is downloaded)")

@@ -53,10 +53,9 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
         cfg.dataset = replace(cfg.dataset, root=ecfg.root)
     cfg.logger.progress = ecfg.progress
     device = torch.device(cfg.device)
-    if cfg.renderer.compile and accel.unavailable(device.type):
-        # compile is an accelerator of the same renderer, not part of the model: evaluate eagerly
-        print(f"mvtn-eval: note: {accel.unavailable(device.type)}; rendering eagerly (the same images to float "
-              "rounding)", file=sys.stderr)
+    problem = accel.unavailable(device.type) if cfg.renderer.compile else None
+    if problem:  # compile is an accelerator of the same renderer, not part of the model: evaluate eagerly
+        print(f"mvtn-eval: note: {problem}; rendering eagerly (the same images to float rounding)", file=sys.stderr)
         cfg.renderer.compile = False
 
     dataset = build_dataset(cfg.dataset, ecfg.split, progress=ecfg.progress)

@@ -77,6 +77,13 @@ def compiled(on: bool):
         _ENABLED.reset(token)
 
 
+def require(device: str) -> None:
+    """Raise ``ValueError`` (one line) when ``renderer.compile=true`` cannot run on ``device`` (``cpu``, ``cuda:N``)."""
+    problem = unavailable(device.split(":")[0])
+    if problem:
+        raise ValueError(problem)
+
+
 def unavailable(device_type: str) -> str | None:
     """Why ``torch.compile`` cannot run the renderer on this machine (None when it can): on CPU its
     code generator needs a C++ compiler; on CUDA it needs Triton."""
