@@ -431,6 +431,8 @@ def register_configs() -> None:
 
     from omegaconf import OmegaConf
 
+    from .engine.search_sweeper import register as register_search_sweeper
+
     load()
     cs = ConfigStore.instance()
     train = OmegaConf.structured(TrainConfig)
@@ -438,6 +440,7 @@ def register_configs() -> None:
         train[kind] = OmegaConf.structured(GROUPS[kind])
     cs.store(name="train_schema", node=train)
     cs.store(name="eval_schema", node=EvalConfig)
+    register_search_sweeper(cs)  # hydra/sweeper=mvtn_optuna
     for kind in OPTION_KINDS:
         for name, option in OPTIONS[kind].items():
             cs.store(group=f"schema/{kind}", name=name, node=option)

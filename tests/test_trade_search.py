@@ -98,6 +98,7 @@ def test_objectives_refuse_test_metrics_and_unknown_names(value, needle):
 class _Trial:
     def __init__(self, params):
         self.params = dict(params)
+        self.user_attrs = {}
 
     def suggest_categorical(self, name, choices):
         self.params[name] = choices[-1]
@@ -114,6 +115,18 @@ def test_conditional_keys_only_where_the_option_uses_them(selector, renderer, wa
     trial = _Trial({"selector": selector, "renderer": renderer})
     conditional_keys(None, trial)
     assert set(trial.params) - {"selector", "renderer"} == want
+
+
+def test_conditional_keys_read_options_fixed_on_the_command_line():
+    """``selector=`` given on the command line (the sweeper keeps it as a user attribute) decides
+    as a sampled one does; an option in neither place leaves its key alone."""
+    trial = _Trial({"renderer": "hard"})
+    trial.user_attrs = {"selector": "mvtn_spherical"}
+    conditional_keys(None, trial)
+    assert set(trial.params) == {"renderer", "selector.num_points"}
+    trial = _Trial({"selector": "spherical"})
+    conditional_keys(None, trial)
+    assert set(trial.params) == {"selector"}
 
 
 def test_every_value_of_the_search_space_composes():
@@ -139,24 +152,88 @@ def test_every_value_of_the_search_space_composes():
             assert getattr(getattr(cfg, part), leaf) == value
 
 
-def test_the_search_runs_trials_and_hands_optuna_their_objectives(tmp_path):
-    """Three one-epoch trials through Hydra's Optuna sweeper: the Pareto solutions it records are
-    the objectives the trials' metrics.json hold."""
+TINY = ["epochs=1", "views=1", "image_size=16", "backbone=small_cnn", "dataset.num_per_class=[2,2,2]", "threads=1",
+        "logger.progress=false"]
+
+
+def _search(tmp_path, *args):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "-m", "+experiment=tradeoff_search",
-                        "hydra.sweeper.n_trials=3", "hydra.sweeper.n_jobs=3", "epochs=1", "views=1", "image_size=16",
-                        "backbone=small_cnn", "dataset.num_per_class=[2,2,2]", "threads=1", "logger.progress=false",
-                        f"paths.cache_dir={tmp_path / 'cache'}", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
-                       capture_output=True, text=True, timeout=600, env=env)
+    return subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "-m", "+experiment=tradeoff_search", *TINY, *args,
+                           f"paths.cache_dir={tmp_path / 'cache'}", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+                          capture_output=True, text=True, timeout=600, env=env)
+
+
+def _rows(sweep):
+    import csv
+
+    return list(csv.DictReader(open(sweep / "search.csv")))
+
+
+def test_the_search_starts_at_its_points_hands_optuna_the_objectives_and_resumes(tmp_path):
+    """One-epoch trials through the project's Optuna sweeper: the first trials are the start points,
+    the Pareto solutions it records are the objectives the trials' metrics.json hold, and the same
+    command with a larger budget into the same folder keeps the finished trials (the same settings
+    in the same folders, not trained again) and trains only the new ones."""
+    r = _search(tmp_path, "hydra.sweeper.n_trials=3", "hydra.sweeper.n_jobs=3")
     assert r.returncode == 0, r.stderr[-2000:]
     sweep = tmp_path / "sweep"
-    jobs = [p for p in sweep.iterdir() if (p / "metrics.json").is_file()]
+    jobs = sorted(p for p in sweep.iterdir() if (p / "metrics.json").is_file())
     assert len(jobs) == 3
     recorded = [[m["best_val_acc"], m["cost"]["infer_ms_per_shape"]]
                 for m in (json.loads((p / "metrics.json").read_text()) for p in jobs)]
     solutions = yaml.safe_load(open(sweep / "optimization_results.yaml"))["solutions"]
     assert solutions and all(s["values"] in recorded for s in solutions)
-    for p in jobs:
-        o = dict(x.split("=", 1) for x in yaml.safe_load(open(p / ".hydra" / "overrides.yaml")))
+    overrides = {p.name.split("_")[0]: dict(x.split("=", 1) for x in yaml.safe_load(open(p / ".hydra" / "overrides.yaml")))
+                 for p in jobs}
+    for o in overrides.values():
         assert ("selector.num_points" in o) == (o["selector"] == "mvtn_spherical")
         assert ("renderer.faces_per_pixel" in o) == (o["renderer"] == "soft")
+    # the start points (conf/experiment/tradeoff_search.yaml) are jobs 0 and 1
+    assert (overrides["0"]["selector"], overrides["0"]["renderer"]) == ("spherical", "hard")
+    assert (overrides["1"]["selector"], overrides["1"]["renderer"], overrides["1"]["selector.num_points"]) == \
+        ("mvtn_spherical", "hard", "256")
+    assert [row["state"] for row in _rows(sweep)] == ["run"] * 3
+    before = {p.name: (p / "metrics.json").stat().st_mtime_ns for p in jobs}
+
+    r = _search(tmp_path, "hydra.sweeper.n_trials=4", "hydra.sweeper.n_jobs=3")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stderr.count("finished before; kept") == 3
+    after = sorted(p for p in sweep.iterdir() if (p / "metrics.json").is_file())
+    assert len(after) == 4 and all((sweep / name / "metrics.json").stat().st_mtime_ns == t for name, t in before.items())
+    assert [row["job"] for row in _rows(sweep) if row["state"] == "run"] == ["0", "1", "2", "3"]
+    # as printed: --resume-sweep runs the folder's own command again and trains nothing
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "--resume-sweep", str(sweep)],
+                       capture_output=True, text=True, timeout=600, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stderr.count("finished before; kept") == 4
+
+
+def test_a_setting_proposed_again_is_told_its_objectives_without_training(tmp_path):
+    """A space of one setting: the first trial trains, every later proposal repeats it and launches
+    nothing, and the search stops after max_repeats repeats in a row."""
+    one = [f"hydra.sweeper.params.{k}={v}" for k, v in
+           (("selector", "spherical"), ("renderer", "hard"), ("views", 1), ("image_size", 16), ("backbone", "small_cnn"))]
+    r = _search(tmp_path, *one, "hydra.sweeper.start_points=[]", "hydra.sweeper.n_trials=3",
+                "hydra.sweeper.n_jobs=1", "hydra.sweeper.max_repeats=4")
+    assert r.returncode == 0, r.stderr[-2000:]
+    sweep = tmp_path / "sweep"
+    assert len([p for p in sweep.iterdir() if (p / ".hydra").is_dir()]) == 1
+    rows = _rows(sweep)
+    assert [row["state"] for row in rows] == ["run"] + ["repeat"] * 4
+    assert len({(row["objective0"], row["objective1"]) for row in rows}) == 1
+    assert yaml.safe_load(open(sweep / "optimization_results.yaml"))["trained"] == 1
+
+
+def test_a_job_folder_of_another_setting_stops_the_search_before_launch(tmp_path):
+    """The folder a trial would train in holds a run of another setting (the search changed since):
+    one line naming the folder, exit 2, and that run is left as it was."""
+    sweep = tmp_path / "sweep"
+    _job(sweep, "0_other", ["selector=mvtn_spherical", "renderer=soft", "views=12"], {"best_val_acc": 0.5})
+    r = _search(tmp_path, "hydra.sweeper.n_trials=1", "hydra.sweeper.n_jobs=1")
+    assert r.returncode == 2
+    line = r.stderr.strip().splitlines()[-1]
+    assert line.startswith("mvtn-train: error: ") and "0_other" in line and "selector=spherical" in line
+    assert "Traceback" not in r.stderr
+    assert json.loads((sweep / "0_other" / "metrics.json").read_text()) == {"best_val_acc": 0.5}
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0_other"]

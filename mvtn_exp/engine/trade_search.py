@@ -31,8 +31,15 @@ CONDITIONAL = {
 
 
 def conditional_keys(config, trial) -> None:
-    """Suggest each ``CONDITIONAL`` key the trial's sampled options use (``config``: the sweep's, unused)."""
+    """Suggest each ``CONDITIONAL`` key the trial's options use: sampled ones, or ones fixed on the
+    command line (the sweeper keeps those as the trial's user attributes); a key whose option is in
+    neither is left alone (``config``: the sweep's, unused)."""
     del config
+    chosen = {**trial.user_attrs, **trial.params}
     for key, (choices, used) in CONDITIONAL.items():
-        if used(trial.params):
+        try:
+            wanted = used(chosen)
+        except KeyError:  # the option it depends on is neither sampled nor given
+            continue
+        if wanted:
             trial.suggest_categorical(key, list(choices))
