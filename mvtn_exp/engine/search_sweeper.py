@@ -85,20 +85,21 @@ def _values(ret, n_objectives: int) -> List[float]:
 
 
 class _Record:
-    """``search.csv`` in the sweep folder: one row per told trial."""
+    """``search.csv`` in the sweep folder: one row per told trial (written anew by each run of the
+    search: a resumed search replays every trial, so the file is whole again)."""
 
     def __init__(self, sweep_dir: Path, objectives: int) -> None:
         sweep_dir.mkdir(parents=True, exist_ok=True)
         self.path = sweep_dir / "search.csv"
-        self.file = open(self.path, "w", newline="")
-        self.writer = csv.writer(self.file)
-        self.writer.writerow(["trial", "job", "state", *[f"objective{i}" for i in range(objectives)], "params"])
+        self._write(["trial", "job", "state", *[f"objective{i}" for i in range(objectives)], "params"], "w")
+
+    def _write(self, row: list, mode: str = "a") -> None:
+        with open(self.path, mode, newline="") as f:
+            csv.writer(f).writerow(row)
 
     def row(self, trial: int, job, state: str, values, params: dict) -> None:
-        values = list(values) if values is not None else []
-        self.writer.writerow([trial, "" if job is None else job, state, *values,
-                              " ".join(f"{k}={v}" for k, v in sorted(params.items()))])
-        self.file.flush()
+        self._write([trial, "" if job is None else job, state, *(list(values) if values is not None else []),
+                     " ".join(f"{k}={v}" for k, v in sorted(params.items()))])
 
 
 def search(impl, arguments: List[str], start_points: list, max_repeats: int) -> None:
