@@ -176,6 +176,7 @@ def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
     ({**HYP, "selector.race_mode": "mixed"}, "selector.race_mode"),
     ({**HYP, "selector.race_batches": 0}, "selector.race_batches"),
     ({"selector.name": "mvtn_poi", "selector.antipodes": True}, "expected an even number"),
+    ({"selector.name": "mvtn_poi", "selector.race_probes": False}, "nothing races"),
 ])
 def test_bad_hypothesis_settings_are_refused(tmp_path, overrides, needle):
     with pytest.raises(ValueError, match=needle):
@@ -224,6 +225,30 @@ def test_a_race_on_a_few_batches_is_decided_within_its_epoch(tmp_path, monkeypat
     resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **cfg), tmp_path / "b")
     assert resumed["confusion_matrix"] == run["confusion_matrix"]
     assert abs(resumed["history"][1]["train_loss"] - second["train_loss"]) <= 1e-6
+
+
+def test_race_without_probes_holds_g_until_the_race_ends(tmp_path, monkeypatch):
+    """race_probes=false over a 1-epoch race and 1 epoch after it (6 steps each): no probe estimate
+    and no G step while racing (G's gradient norm 0 in epoch 1, no AdamW state for G), one estimate
+    and one G step per step after it; C steps every time; resume is exact."""
+    from test_view_gradient import count_probes
+
+    calls = count_probes(monkeypatch)
+    cache = str(tmp_path / "cache")
+    cfg = {**HYP, "selector.race_z": None, "selector.race_probes": False, "selector.probe_pairs": 1}
+    one = train(tiny(cache, epochs=1, **cfg), tmp_path / "one")
+    assert len(calls) == 0 and one["history"][0]["grad_norm_selector"] == 0.0
+    state = checkpoint.load(tmp_path / "one" / "last.pt")["optimizer"]
+    groups = {g["name"]: g["params"] for g in state["param_groups"]}
+    assert not any(i in state["state"] for i in groups["selector"])  # AdamW never stepped G: its views held
+    run = train(tiny(cache, epochs=2, **cfg), tmp_path / "run")
+    assert len(calls) == 6 and run["history"][1]["grad_norm_selector"] > 0
+    state = checkpoint.load(tmp_path / "run" / "last.pt")["optimizer"]
+    groups = {g["name"]: g["params"] for g in state["param_groups"]}
+    assert {int(state["state"][i]["step"]) for i in groups["selector"] if i in state["state"]} == {6}
+    assert {int(state["state"][i]["step"]) for i in groups["mvnet"] if i in state["state"]} == {12}
+    resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "one" / "last.pt"), **cfg), tmp_path / "b")
+    assert resumed["confusion_matrix"] == run["confusion_matrix"]
 
 
 def test_pooled_race_scores_each_hypothesis_alone(tmp_path):

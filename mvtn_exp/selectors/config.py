@@ -151,7 +151,7 @@ class LearnedSelectorConfig(SelectorConfig):
                                       "warmup_num_views", "warmup_elevation", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every", "train_jitter",
                                       "probe_batched", "search_views", "search_every", "search_weight",
                                       "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
-                                      "race_z", "race_batches", "race_mode", "cache")
+                                      "race_z", "race_batches", "race_mode", "race_probes", "cache")
 
     def validate(self) -> "LearnedSelectorConfig":
         super().validate()

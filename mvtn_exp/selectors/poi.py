@@ -223,7 +223,9 @@ class PoiConfig(LearnedSelectorConfig):
     epoch renders all hypotheses for at most this many batches, then the race is decided for good on
     them (null: whole epochs); ``race_mode``: C classifies each hypothesis's views as a shape of its
     own (separate) or all H x M views pooled (pooled); ``antipodes``: the second half of the H
-    hypotheses are the first half's views from the opposite side (G scores H / 2).
+    hypotheses are the first half's views from the opposite side (G scores H / 2);
+    ``race_probes``: false holds G's hypotheses where they start while they race (no probes, no
+    G step: a racing step then costs C's passes alone) and lets the kept one move after the race.
     ``descriptors``: the subset G scores from (``DESCRIPTORS``); ``ks``: the neighbourhood sizes
     (points) they are computed over."""
 
@@ -237,6 +239,7 @@ class PoiConfig(LearnedSelectorConfig):
     race_batches: Optional[int] = None
     race_mode: str = "separate"
     antipodes: bool = False
+    race_probes: bool = True
     descriptors: list[str] = field(default_factory=lambda: list(DESCRIPTORS))
     ks: list[int] = field(default_factory=lambda: [16, 48])
 
@@ -261,6 +264,9 @@ class PoiConfig(LearnedSelectorConfig):
         if self.hypotheses > 1 and (self.flip_explore > 0 or self.grad == "search"):
             raise ValueError("selector.hypotheses with selector.flip_explore or selector.grad=search: choose one way "
                              "to explore")
+        if not self.race_probes and self.hypotheses < 2:
+            raise ValueError("selector.race_probes=false with selector.hypotheses=1: nothing races (it holds G only "
+                             "while hypotheses race)")
         if self.antipodes and (self.hypotheses < 2 or self.hypotheses % 2):
             raise ValueError(f"selector.antipodes=true with selector.hypotheses={self.hypotheses}: expected an even "
                              "number of hypotheses (each free one raced against its views from the opposite side)")

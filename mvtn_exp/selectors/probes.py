@@ -14,7 +14,8 @@ selector with ``grad=smoothed``, ``flip_explore > 0`` or ``hypotheses > 1``:
 - ``hypotheses`` H > 1 (``mvtn_poi``, ``poi``): for at most ``race_epochs`` epochs all H sets of
   views are rendered, C trains on each (``race_mode``), and the set of lowest G loss is kept
   (``hypotheses.py``); with ``race_batches`` N the race is decided for good after N batches of a
-  racing epoch (the rest of the epoch renders the kept set alone).
+  racing epoch (the rest of the epoch renders the kept set alone); ``race_probes=false``: no
+  probes while racing (the hypotheses hold their views; G moves the kept one after the race).
 """
 from __future__ import annotations
 
@@ -123,7 +124,8 @@ class ProbeTraining(LearnedTraining):
             with timer.stage("selector"):
                 model.hypotheses.record(hypothesis_losses(model, logits, images, labels, H, S, self.selector_loss))
         objective = loss
-        if self.smoothed and step % self.s.probe_every == 0:  # G's gradient from the loss at perturbed views
+        if self.smoothed and step % self.s.probe_every == 0 and (H == 1 or self.s.race_probes):
+            # G's gradient from the loss at perturbed views
             # (view_gradient.py), charged to G; on the other steps G gets no gradient and AdamW leaves it
             with timer.stage("selector"):
                 g = view_gradient.smoothed_view_gradient(
