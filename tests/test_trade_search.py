@@ -225,6 +225,19 @@ def test_a_setting_proposed_again_is_told_its_objectives_without_training(tmp_pa
     assert yaml.safe_load(open(sweep / "optimization_results.yaml"))["trained"] == 1
 
 
+@pytest.mark.parametrize("point, needle", [
+    ("{renderer:wire}", "not in"),
+    ("{colour:red}", "colour is not a key the search samples"),
+])
+def test_a_start_point_outside_the_space_is_one_line_exit_2(tmp_path, point, needle):
+    r = _search(tmp_path, "hydra.sweeper.n_trials=1", "hydra.sweeper.n_jobs=1", f"hydra.sweeper.start_points=[{point}]")
+    assert r.returncode == 2, r.stderr[-2000:]
+    line = r.stderr.strip().splitlines()[-1]
+    assert line.startswith("mvtn-train: error: hydra.sweeper.start_points") and needle in line, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    assert not any(p.is_dir() and (p / ".hydra").is_dir() for p in (tmp_path / "sweep").iterdir())
+
+
 def test_a_job_folder_of_another_setting_stops_the_search_before_launch(tmp_path):
     """The folder a trial would train in holds a run of another setting (the search changed since):
     one line naming the folder, exit 2, and that run is left as it was."""

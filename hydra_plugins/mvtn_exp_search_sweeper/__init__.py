@@ -18,10 +18,10 @@ class SearchSweeper(OptunaSweeper):
         self.max_repeats = int(max_repeats)
 
     def sweep(self, arguments: List[str]) -> None:
-        from mvtn_exp.engine.search_sweeper import SearchMismatch, search
+        from mvtn_exp.engine.search_sweeper import SearchRefused, search
 
         try:
             search(self.sweeper, arguments, self.start_points, self.max_repeats)
-        except SearchMismatch as exc:
+        except SearchRefused as exc:
             print(f"mvtn-train: error: {exc}", file=sys.stderr)
             sys.exit(2)

@@ -48,8 +48,9 @@ def register(cs: ConfigStore) -> None:
     cs.store(group="hydra/sweeper", name="mvtn_optuna", node=SearchSweeperConf, provider="mvtn_exp")
 
 
-class SearchMismatch(RuntimeError):
-    """A job folder holds a finished or started run of another setting than its trial's."""
+class SearchRefused(RuntimeError):
+    """A job folder holds a run of another setting than its trial's, or a start point is not a
+    setting of the search: one line for the user, nothing launched."""
 
 
 def settings_key(params: Dict[str, Any]) -> tuple:
@@ -58,7 +59,7 @@ def settings_key(params: Dict[str, Any]) -> tuple:
 
 
 def check_job_dir(sweep_dir: Path, job: int, overrides: Sequence[str]) -> None:
-    """Raise ``SearchMismatch`` when a folder of job number ``job`` in ``sweep_dir`` (``K`` or
+    """Raise ``SearchRefused`` when a folder of job number ``job`` in ``sweep_dir`` (``K`` or
     ``K_<overrides>``, ``conf/hydra/default.yaml``) holds a run whose recorded overrides lack one of
     ``overrides`` (the trial's ``key=value``); no such folder, or an empty one, passes."""
     import yaml
@@ -70,7 +71,7 @@ def check_job_dir(sweep_dir: Path, job: int, overrides: Sequence[str]) -> None:
         held = {str(o) for o in (yaml.safe_load(record.read_text()) or [])}
         missing = [o for o in overrides if o not in held]
         if missing:
-            raise SearchMismatch(f"{folder} holds another setting than trial job {job} proposed ({', '.join(missing)} "
+            raise SearchRefused(f"{folder} holds another setting than trial job {job} proposed ({', '.join(missing)} "
                                  "not among its overrides): the search space, sampler or code changed since it ran; "
                                  "resume with the same command and code, or search into a new hydra.sweep.dir")
 
@@ -102,6 +103,24 @@ class _Record:
                      " ".join(f"{k}={v}" for k, v in sorted(params.items()))])
 
 
+def _configure(impl, trial, space: dict, fixed: dict) -> tuple:
+    """The trial's overrides (the plugin's ``_configure_trials``); a start point (an enqueued trial)
+    whose value is not among its key's choices, or whose key the search does not sample for it,
+    raises ``SearchRefused``."""
+    point = trial.system_attrs.get("fixed_params") or {}
+    try:
+        (overrides,) = impl._configure_trials([trial], space, fixed)
+    except ValueError as exc:
+        if not point:
+            raise
+        raise SearchRefused(f"hydra.sweeper.start_points: {point}: {exc} (a value of the key's choices expected)") from None
+    unused = sorted(set(point) - set(trial.params))
+    if unused:
+        raise SearchRefused(f"hydra.sweeper.start_points: {point}: {', '.join(unused)} is not a key the search samples "
+                            f"for this point (it samples {', '.join(sorted(trial.params))})")
+    return overrides
+
+
 def search(impl, arguments: List[str], start_points: list, max_repeats: int) -> None:
     """The plugin's ``OptunaSweeperImpl.sweep`` with start points, repeats told without training and
     job folders checked before launch (module docstring). ``impl``: the plugin's sweeper, set up."""
@@ -128,7 +147,7 @@ def search(impl, arguments: List[str], start_points: list, max_repeats: int) -> 
         batch, overrides = [], []
         while len(batch) < min(impl.n_jobs, impl.n_trials - trained) and repeats_in_a_row < max_repeats:
             trial = study.ask()
-            (trial_overrides,) = impl._configure_trials([trial], space, fixed)
+            trial_overrides = _configure(impl, trial, space, fixed)
             params = dict(trial.params)
             key = settings_key(params)
             if key in told:  # a setting trained before: its objectives, nothing launched
