@@ -105,8 +105,8 @@ class _Record:
 
 def _configure(impl, trial, space: dict, fixed: dict) -> tuple:
     """The trial's overrides (the plugin's ``_configure_trials``); a start point (an enqueued trial)
-    whose value is not among its key's choices, or whose key the search does not sample for it,
-    raises ``SearchRefused``."""
+    whose value is not among its key's choices, or with a key the search neither samples for it nor
+    is given on the command line (which wins), raises ``SearchRefused``."""
     point = trial.system_attrs.get("fixed_params") or {}
     try:
         (overrides,) = impl._configure_trials([trial], space, fixed)
@@ -114,7 +114,7 @@ def _configure(impl, trial, space: dict, fixed: dict) -> tuple:
         if not point:
             raise
         raise SearchRefused(f"hydra.sweeper.start_points: {point}: {exc} (a value of the key's choices expected)") from None
-    unused = sorted(set(point) - set(trial.params))
+    unused = sorted(set(point) - set(trial.params) - set(fixed))  # a key given on the command line wins
     if unused:
         raise SearchRefused(f"hydra.sweeper.start_points: {point}: {', '.join(unused)} is not a key the search samples "
                             f"for this point (it samples {', '.join(sorted(trial.params))})")
