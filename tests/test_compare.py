@@ -214,3 +214,31 @@ def test_ratio_is_the_paired_geometric_mean_with_its_log_interval(tmp_path, caps
     with pytest.raises(SystemExit) as e:
         main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c"), "--ratio", "train_wall_seconds"])
     assert e.value.code == 2 and "must be > 0" in capsys.readouterr().err
+
+
+def test_a_key_added_after_a_run_reads_as_its_current_default(tmp_path, capsys):
+    """An older run's record lacks renderer.compile (added later, default false): it pairs with
+    newer runs that have false (one side, the filled key listed), not with runs that have true."""
+    def run(folder, name, acc, seed, compile_):
+        d = _run(folder, name, acc, seed=seed, selector="poi")
+        m = json.loads((d / "metrics.json").read_text())
+        if compile_ is not None:
+            m["config"]["renderer"] = {"compile": compile_}
+        (d / "metrics.json").write_text(json.dumps(m))
+
+    for s in range(3):
+        run(tmp_path / "old", f"s{s}", 0.5, s, None)  # before the key existed
+        run(tmp_path / "new", f"s{s}", 0.5, s + 3, False)  # the same setting, later, other seeds
+    for s in range(6):
+        run(tmp_path / "on", f"s{s}", 0.6 + 0.01 * s, s, True)
+    result = compare(find_runs([tmp_path / "old", tmp_path / "new"]) + find_runs([tmp_path / "on"]),
+                     where=["renderer.compile=false", "renderer.compile=true"])
+    sides = result["groups"][0]["sides"]
+    assert sides[0]["seeds"] == sides[1]["seeds"] == [0, 1, 2, 3, 4, 5]
+    assert sides[1]["differs_in"] == ["renderer.compile"]
+    assert result["filled"] == {"renderer.compile": 3}
+    with pytest.raises(CompareError, match="differ in renderer.compile"):  # true is no default: not filled away
+        compare(find_runs([tmp_path / "old", tmp_path / "on"]), where=["selector=poi"])
+    main([str(tmp_path / "old"), str(tmp_path / "new"), str(tmp_path / "on"), "--out", str(tmp_path / "c")])
+    out = capsys.readouterr().out
+    assert "read as the current default: renderer.compile (3 runs)" in out

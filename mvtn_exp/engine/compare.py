@@ -18,7 +18,9 @@ A comparison is refused (``CompareError``, one line naming the key) when the two
 data, split or epochs (``PROTECTED``) unless that key is named as the one under comparison, when
 their seeds differ (and no unfinished run explains it), or when fewer than 2 seeds are common.
 Keys that say where or how a run ran (``RUN_LOCAL``: device, threads, paths, ...) never make a
-difference.
+difference. A key that another run's record has and an older run's lacks (the key was added after
+the older run) is read as the key's default in the current code (``fill_added_keys``: adding a key
+keeps the old behaviour as its default), and ``compare.md`` lists every key so filled.
 """
 from __future__ import annotations
 
@@ -53,6 +55,7 @@ class Run:
     metrics: dict = field(default_factory=dict)
     commit: str | None = None
     error: str = ""
+    filled: list = field(default_factory=list)  # keys its record lacked, read as today's defaults
 
 
 def flatten(node, prefix: str = "") -> dict:
@@ -109,6 +112,47 @@ def find_runs(folders) -> list[Run]:
                 seen.add(path.resolve())
                 runs.append(_read_run(path))
     return runs
+
+
+_DEFAULTS: dict = {}
+
+
+def current_defaults(settings: dict) -> dict:
+    """The current code's default of every dotted key of a run with ``settings``'s options (the
+    top-level ``TrainConfig`` fields, and each option kind's schema for the option it names)."""
+    from omegaconf import OmegaConf
+
+    from ..options import OPTIONS
+    from ..schema import OPTION_KINDS, TrainConfig
+
+    names = tuple(settings.get(f"{kind}.name") for kind in OPTION_KINDS)
+    if names not in _DEFAULTS:
+        out = flatten(OmegaConf.to_container(OmegaConf.structured(TrainConfig)))
+        for kind, name in zip(OPTION_KINDS, names):
+            try:
+                schema = OPTIONS[kind].schema(str(name))
+            except ValueError:  # an option this code no longer has: nothing to fill from
+                continue
+            out.update(flatten(OmegaConf.to_container(OmegaConf.structured(schema)), kind))
+        _DEFAULTS[names] = out
+    return _DEFAULTS[names]
+
+
+def fill_added_keys(runs: list[Run]) -> None:
+    """A key some run's record has and another's lacks, and that the current code defaults: the
+    lacking run gets the default (recorded in ``Run.filled``); a key without a current default
+    stays absent (and still makes a difference)."""
+    readable = [r for r in runs if r.settings is not None]
+    every = set().union(*(r.settings for r in readable)) if readable else set()
+    for r in readable:
+        missing = every - set(r.settings)
+        if not missing:
+            continue
+        defaults = current_defaults(r.settings)
+        for key in sorted(missing):
+            if key in defaults and not _local(key):
+                r.settings[key] = defaults[key]
+                r.filled.append(key)
 
 
 def parse_condition(text: str) -> dict:
@@ -315,6 +359,9 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
               "group": group, "groups": [], "ratios": list(ratios),
               "not_finished": [{"path": str(r.path), "status": r.status, "seed": r.seed, "error": r.error}
                                for r in runs if r.status != "ok"]}
+    fill_added_keys(runs)
+    filled = sorted({k for r in runs for k in r.filled})
+    result["filled"] = {k: sum(k in r.filled for r in runs) for k in filled}
     for g, sides in make_sides(runs, where, group, reference).items():
         group_text = f" at {group}={_show(g)}" if group else ""
         if len(sides) < 2:
@@ -391,6 +438,9 @@ def to_markdown(result: dict) -> str:
                 note += f"; seeds left out (unfinished on one side): {_seeds(set(s['dropped_seeds']))}"
             lines += ["", note]
         lines.append("")
+    if result.get("filled"):
+        lines += ["Keys some runs' records lack (made before the key existed), read as the current default: "
+                  + ", ".join(f"{k} ({n} run{'s' if n > 1 else ''})" for k, n in result["filled"].items()), ""]
     if result["not_finished"]:
         lines += ["Runs not finished (left out):", ""]
         lines += [f"- {r['path']}: {r['status']}" + (f": {r['error']}" if r["error"] else "") for r in result["not_finished"]]
