@@ -54,10 +54,26 @@ def test_the_recipe_is_one_name_with_its_renderer(tmp_path):
         cfg = as_config(compose("train", overrides=["selector=poi", "views=1"]))
         soft = as_config(compose("train", overrides=["selector=poi", "renderer=soft"]))
     s = cfg.selector
-    assert (s.gain, s.hypotheses, s.race_epochs, s.race_mode, s.lr) == (32.0, 1, 0, "pooled", 1e-2)
+    assert (s.gain, s.hypotheses, s.race_epochs, s.race_mode, s.antipodes, s.lr) == (32.0, 4, 8, "pooled", True, 1e-2)
     assert (s.grad, s.loss, s.bn_recalibrate) == ("smoothed", "centered_logit", 24)
     assert (cfg.renderer.mode, cfg.renderer.train_light, cfg.renderer.train_color) == ("hard", "camera", "white")
     assert soft.renderer.mode == "soft"  # the command line's renderer wins
+
+
+def test_the_recipe_with_one_set_of_views_is_one_line_away():
+    """The recipe races four hypotheses; one set of views is three keys, and a half-way line is
+    refused with the whole line to write."""
+    from hydra import compose, initialize_config_module
+
+    lean = "selector.hypotheses=1 selector.race_epochs=0 selector.antipodes=false"
+    with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
+        cfg = as_config(compose("train", overrides=["selector=poi", *lean.split()]))
+        assert (cfg.selector.hypotheses, cfg.selector.race_epochs, cfg.selector.antipodes) == (1, 0, False)
+        assert cfg.selector.modules(cfg.views) == {}  # no race: nothing per shape to keep
+        with pytest.raises(ValueError, match=lean):
+            as_config(compose("train", overrides=["selector=poi", "selector.hypotheses=1"]))
+        with pytest.raises(ValueError, match=lean):
+            as_config(compose("train", overrides=["selector=poi", "selector.grad=search"]))
 
 
 def test_old_checkpoint_configs_are_upgraded():
