@@ -283,7 +283,8 @@ class PoiConfig(LearnedSelectorConfig):
         super().check(cfg)
         if self.hypotheses > 1 and not cfg.mvnet.any_view_set:
             raise ValueError(f"selector.hypotheses={self.hypotheses} with mvnet={cfg.mvnet.name}: racing hypotheses is "
-                             "for MVCNN-style networks; use selector.hypotheses=1 selector.race_epochs=0")
+                             "for MVCNN-style networks; use selector.hypotheses=1 selector.race_epochs=0 "
+                             "selector.antipodes=false")
 
     def build(self, views: int, seed: int, point_encoder=None) -> PointOfInterestSelector:
         return PointOfInterestSelector(views, distance=self.distance, gain=self.gain, sphere=self.sphere,
