@@ -209,13 +209,15 @@ def test_the_search_starts_at_its_points_hands_optuna_the_objectives_and_resumes
     assert r.stderr.count("finished before; kept") == 4
 
 
-def test_a_setting_proposed_again_is_told_its_objectives_without_training(tmp_path):
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_setting_proposed_again_is_told_its_objectives_without_training(tmp_path, jobs):
     """A space of one setting: the first trial trains, every later proposal repeats it and launches
-    nothing, and the search stops after max_repeats repeats in a row."""
+    nothing (with two trials asked at once, also the second of the first pair: told what the first
+    got), and the search stops after max_repeats repeats in a row."""
     one = [f"hydra.sweeper.params.{k}={v}" for k, v in
            (("selector", "spherical"), ("renderer", "hard"), ("views", 1), ("image_size", 16), ("backbone", "small_cnn"))]
     r = _search(tmp_path, *one, "hydra.sweeper.start_points=[]", "hydra.sweeper.n_trials=3",
-                "hydra.sweeper.n_jobs=1", "hydra.sweeper.max_repeats=4")
+                f"hydra.sweeper.n_jobs={jobs}", "hydra.sweeper.max_repeats=4")
     assert r.returncode == 0, r.stderr[-2000:]
     sweep = tmp_path / "sweep"
     assert len([p for p in sweep.iterdir() if (p / ".hydra").is_dir()]) == 1

@@ -144,15 +144,18 @@ def search(impl, arguments: List[str], start_points: list, max_repeats: int) -> 
     told: Dict[tuple, List[float]] = {}
     trained = repeats_in_a_row = 0
     while trained < impl.n_trials and repeats_in_a_row < max_repeats:
-        batch, overrides = [], []
+        batch, overrides, echoes = [], [], []  # echoes: repeats of a setting of this very batch
         while len(batch) < min(impl.n_jobs, impl.n_trials - trained) and repeats_in_a_row < max_repeats:
             trial = study.ask()
             trial_overrides = _configure(impl, trial, space, fixed)
             params = dict(trial.params)
             key = settings_key(params)
-            if key in told:  # a setting trained before: its objectives, nothing launched
-                study.tell(trial, told[key])
-                record.row(trial.number, None, "repeat", told[key], params)
+            if key in told or key in {k for _, k, _ in batch}:  # trained before or now: nothing launched
+                if key in told:
+                    study.tell(trial, told[key])
+                    record.row(trial.number, None, "repeat", told[key], params)
+                else:
+                    echoes.append((trial, key, params))
                 repeats_in_a_row += 1
                 continue
             repeats_in_a_row = 0
@@ -176,6 +179,13 @@ def search(impl, arguments: List[str], start_points: list, max_repeats: int) -> 
             study.tell(trial, values)
             told[key] = values
             record.row(trial.number, impl.job_idx + i, "run", values, params)
+        for trial, key, params in echoes:  # told what their batch-mate got
+            if key in told:
+                study.tell(trial, told[key])
+                record.row(trial.number, None, "repeat", told[key], params)
+            else:
+                study.tell(trial, state=optuna.trial.TrialState.FAIL)
+                record.row(trial.number, None, "failed", None, params)
         impl.job_idx += len(returns)
         trained += len(returns)
         if failures / len(returns) > impl.max_failure_rate:
