@@ -121,6 +121,67 @@ def _configure(impl, trial, space: dict, fixed: dict) -> tuple:
     return overrides
 
 
+def _tell_repeat(study, record: _Record, trial, told: dict, key: tuple, params: dict) -> None:
+    """A repeated setting: told the objectives its first trial got (failed if that one failed)."""
+    import optuna
+
+    if key in told:
+        study.tell(trial, told[key])
+        record.row(trial.number, None, "repeat", told[key], params)
+    else:
+        study.tell(trial, state=optuna.trial.TrialState.FAIL)
+        record.row(trial.number, None, "failed", None, params)
+
+
+def _ask_batch(study, impl, space, fixed, record, told: dict, size: int, repeats: int, max_repeats: int):
+    """Up to ``size`` trials of new settings: ``(batch, overrides, echoes, repeats)``. A repeat of a
+    trained setting is told at once; a repeat of a setting in this batch (an echo) after it ran."""
+    batch, overrides, echoes = [], [], []
+    while len(batch) < size and repeats < max_repeats:
+        trial = study.ask()
+        trial_overrides = _configure(impl, trial, space, fixed)
+        params = dict(trial.params)
+        key = settings_key(params)
+        if key in told or key in {k for _, k, _ in batch}:  # trained before or now: nothing launched
+            if key in told:
+                _tell_repeat(study, record, trial, told, key, params)
+            else:
+                echoes.append((trial, key, params))
+            repeats += 1
+            continue
+        repeats = 0
+        batch.append((trial, key, params))
+        overrides.append(trial_overrides)
+    return batch, overrides, echoes, repeats
+
+
+def _run_batch(study, impl, sweep_dir: Path, record: _Record, told: dict, batch: list, overrides: list,
+               n_objectives: int) -> None:
+    """Launch ``batch`` (job folders checked first) and tell each trial its objectives, or failed."""
+    import optuna
+
+    for i, (trial, _, params) in enumerate(batch):
+        check_job_dir(sweep_dir, impl.job_idx + i, [f"{k}={v}" for k, v in params.items()])
+    returns = impl.launcher.launch(overrides, initial_job_idx=impl.job_idx)
+    failures = 0
+    for i, ((trial, key, params), ret) in enumerate(zip(batch, returns)):
+        try:
+            values = _values(ret, n_objectives)
+        except Exception as exc:  # the job's failure is recorded; the search goes on
+            study.tell(trial, state=optuna.trial.TrialState.FAIL)
+            record.row(trial.number, impl.job_idx + i, "failed", None, params)
+            log.warning(f"Failed experiment: {exc}")
+            failures += 1
+            continue
+        study.tell(trial, values)
+        told[key] = values
+        record.row(trial.number, impl.job_idx + i, "run", values, params)
+    impl.job_idx += len(returns)
+    if failures / len(returns) > impl.max_failure_rate:
+        for ret in returns:
+            ret.return_value  # raise with the job's own traceback
+
+
 def search(impl, arguments: List[str], start_points: list, max_repeats: int) -> None:
     """The plugin's ``OptunaSweeperImpl.sweep`` with start points, repeats told without training and
     job folders checked before launch (module docstring). ``impl``: the plugin's sweeper, set up."""
@@ -142,56 +203,17 @@ def search(impl, arguments: List[str], start_points: list, max_repeats: int) -> 
     record = _Record(sweep_dir, len(directions))
     OmegaConf.save(impl.config, sweep_dir / "multirun.yaml")  # the command, for mvtn-train --resume-sweep
     told: Dict[tuple, List[float]] = {}
-    trained = repeats_in_a_row = 0
-    while trained < impl.n_trials and repeats_in_a_row < max_repeats:
-        batch, overrides, echoes = [], [], []  # echoes: repeats of a setting of this very batch
-        while len(batch) < min(impl.n_jobs, impl.n_trials - trained) and repeats_in_a_row < max_repeats:
-            trial = study.ask()
-            trial_overrides = _configure(impl, trial, space, fixed)
-            params = dict(trial.params)
-            key = settings_key(params)
-            if key in told or key in {k for _, k, _ in batch}:  # trained before or now: nothing launched
-                if key in told:
-                    study.tell(trial, told[key])
-                    record.row(trial.number, None, "repeat", told[key], params)
-                else:
-                    echoes.append((trial, key, params))
-                repeats_in_a_row += 1
-                continue
-            repeats_in_a_row = 0
-            batch.append((trial, key, params))
-            overrides.append(trial_overrides)
+    trained = repeats = 0
+    while trained < impl.n_trials and repeats < max_repeats:
+        batch, overrides, echoes, repeats = _ask_batch(study, impl, space, fixed, record, told,
+                                                       min(impl.n_jobs, impl.n_trials - trained), repeats, max_repeats)
         if not batch:
             break
-        for i, (trial, _, params) in enumerate(batch):
-            check_job_dir(sweep_dir, impl.job_idx + i, [f"{k}={v}" for k, v in params.items()])
-        returns = impl.launcher.launch(overrides, initial_job_idx=impl.job_idx)
-        failures = 0
-        for i, ((trial, key, params), ret) in enumerate(zip(batch, returns)):
-            try:
-                values = _values(ret, len(directions))
-            except Exception as exc:  # the job's failure is recorded; the search goes on
-                study.tell(trial, state=optuna.trial.TrialState.FAIL)
-                record.row(trial.number, impl.job_idx + i, "failed", None, params)
-                log.warning(f"Failed experiment: {exc}")
-                failures += 1
-                continue
-            study.tell(trial, values)
-            told[key] = values
-            record.row(trial.number, impl.job_idx + i, "run", values, params)
+        _run_batch(study, impl, sweep_dir, record, told, batch, overrides, len(directions))
         for trial, key, params in echoes:  # told what their batch-mate got
-            if key in told:
-                study.tell(trial, told[key])
-                record.row(trial.number, None, "repeat", told[key], params)
-            else:
-                study.tell(trial, state=optuna.trial.TrialState.FAIL)
-                record.row(trial.number, None, "failed", None, params)
-        impl.job_idx += len(returns)
-        trained += len(returns)
-        if failures / len(returns) > impl.max_failure_rate:
-            for ret in returns:
-                ret.return_value  # raise with the job's own traceback
-    if repeats_in_a_row >= max_repeats:
+            _tell_repeat(study, record, trial, told, key, params)
+        trained += len(batch)
+    if repeats >= max_repeats:
         log.info(f"{max_repeats} proposals in a row repeated a trained setting: the search stops after {trained} trials")
     best = study.best_trials if len(directions) > 1 else [study.best_trial]
     front = [{"params": t.params, "values": t.values} for t in best]
