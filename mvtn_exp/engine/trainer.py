@@ -283,10 +283,8 @@ def check_world(cfg: TrainConfig, world: distributed.World) -> None:
     extra = cfg.selector.modules(cfg.views)  # per-shape statistics of G's training (hypotheses, polarity)
     if extra:
         key = "hypotheses" if "hypotheses" in extra else "flip_explore"
-        hint = (" or with one set of views (selector.hypotheses=1 selector.race_epochs=0 selector.antipodes=false)"
-                if key == "hypotheses" else "")
         raise ValueError(f"selector.{key}={getattr(cfg.selector, key)} with {world.size} processes: selector={cfg.selector.name}'s per-shape statistics "
-                         f"({', '.join(extra)}) are not shared between processes yet; run it in one process{hint}")
+                         f"({', '.join(extra)}) are not shared between processes yet; run it in one process")
 
 
 def check_split_sizes(datasets: dict, world: distributed.World) -> None:

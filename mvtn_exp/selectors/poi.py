@@ -207,7 +207,8 @@ class PointOfInterestSelector(ViewSelector):
 
 
 # ----------------------------------------------------------------------------- config options
-RACE_MODES = ("separate", "pooled")  # how C sees the hypotheses while they race (selectors/hypotheses.py)
+RACE_MODES = ("separate", "pooled")
+ONE_SET = "selector.hypotheses=1 selector.race_epochs=0 selector.antipodes=false"  # one set of views, no race  # how C sees the hypotheses while they race (selectors/hypotheses.py)
 
 
 @register("mvtn_poi")
@@ -260,31 +261,27 @@ class PoiConfig(LearnedSelectorConfig):
         one_of("selector.race_mode", self.race_mode, RACE_MODES)
         if (self.hypotheses > 1) != (self.race_epochs > 0):
             raise ValueError(f"selector.hypotheses={self.hypotheses} with selector.race_epochs={self.race_epochs}: "
-                             "set both (hypotheses >= 2 and race_epochs >= 1) or neither (one set of views: "
-                             "selector.hypotheses=1 selector.race_epochs=0 selector.antipodes=false)")
+                             f"set both (hypotheses >= 2 and race_epochs >= 1) or neither (one set of views: {ONE_SET})")
         if self.hypotheses > 1 and (self.flip_explore > 0 or self.grad == "search"):
             raise ValueError(f"selector.hypotheses={self.hypotheses} with selector.flip_explore or selector.grad=search: "
-                             "choose one way to explore (one set of views: selector.hypotheses=1 "
-                             "selector.race_epochs=0 selector.antipodes=false)")
+                             f"choose one way to explore (one set of views: {ONE_SET})")
         if not self.race_probes and self.hypotheses < 2:
             raise ValueError("selector.race_probes=false with selector.hypotheses=1: nothing races (it holds G only "
                              "while hypotheses race)")
         if self.antipodes and (self.hypotheses < 2 or self.hypotheses % 2):
             raise ValueError(f"selector.antipodes=true with selector.hypotheses={self.hypotheses}: expected an even "
                              "number of hypotheses (each free one raced against its views from the opposite side); "
-                             "one set of views: selector.hypotheses=1 selector.race_epochs=0 selector.antipodes=false")
+                             f"one set of views: {ONE_SET}")
         if self.from_ckpt and self.hypotheses > 1:
             raise ValueError(f"selector.from_ckpt with selector.hypotheses={self.hypotheses}: a transferred G is "
-                             "frozen, it races nothing; add selector.hypotheses=1 selector.race_epochs=0 "
-                             "selector.antipodes=false")
+                             f"frozen, it races nothing; add {ONE_SET}")
         return self
 
     def check(self, cfg: "TrainConfig") -> None:
         super().check(cfg)
         if self.hypotheses > 1 and not cfg.mvnet.any_view_set:
             raise ValueError(f"selector.hypotheses={self.hypotheses} with mvnet={cfg.mvnet.name}: racing hypotheses is "
-                             "for MVCNN-style networks; use selector.hypotheses=1 selector.race_epochs=0 "
-                             "selector.antipodes=false")
+                             f"for MVCNN-style networks; use {ONE_SET}")
 
     def build(self, views: int, seed: int, point_encoder=None) -> PointOfInterestSelector:
         return PointOfInterestSelector(views, distance=self.distance, gain=self.gain, sphere=self.sphere,
