@@ -207,8 +207,8 @@ class PointOfInterestSelector(ViewSelector):
 
 
 # ----------------------------------------------------------------------------- config options
-RACE_MODES = ("separate", "pooled")
-ONE_SET = "selector.hypotheses=1 selector.race_epochs=0 selector.antipodes=false"  # one set of views, no race  # how C sees the hypotheses while they race (selectors/hypotheses.py)
+RACE_MODES = ("separate", "pooled")  # how C sees the hypotheses while they race (selectors/hypotheses.py)
+ONE_SET = "selector.hypotheses=1 selector.race_epochs=0 selector.antipodes=false"  # one set of views, no race
 
 
 @register("mvtn_poi")
