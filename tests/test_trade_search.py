@@ -193,11 +193,15 @@ def test_the_search_starts_at_its_points_hands_optuna_the_objectives_and_resumes
     assert (overrides["1"]["selector"], overrides["1"]["renderer"], overrides["1"]["selector.num_points"]) == \
         ("mvtn_spherical", "hard", "256")
     assert [row["state"] for row in _rows(sweep)] == ["run"] * 3
-    before = {p.name: (p / "metrics.json").stat().st_mtime_ns for p in jobs}
+    cut = next(p for p in jobs if p.name.startswith("2_"))  # as if the search was stopped during job 2's last epoch
+    (cut / "metrics.json").unlink()
+    (cut / "status.json").write_text(json.dumps({"status": "interrupted", "error": ""}))
+    before = {p.name: (p / "metrics.json").stat().st_mtime_ns for p in jobs if p != cut}
 
     r = _search(tmp_path, "hydra.sweeper.n_trials=4", "hydra.sweeper.n_jobs=3")
     assert r.returncode == 0, r.stderr[-2000:]
-    assert r.stderr.count("finished before; kept") == 3
+    assert r.stderr.count("finished before; kept") == 2
+    assert "started again: going on from" in (cut / "train.log").read_text() and (cut / "metrics.json").is_file()
     after = sorted(p for p in sweep.iterdir() if (p / "metrics.json").is_file())
     assert len(after) == 4 and all((sweep / name / "metrics.json").stat().st_mtime_ns == t for name, t in before.items())
     assert [row["job"] for row in _rows(sweep) if row["state"] == "run"] == ["0", "1", "2", "3"]

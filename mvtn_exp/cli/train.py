@@ -62,9 +62,11 @@ def peer_stopped(exc: BaseException) -> bool:
                                                                    "gloo", "NCCL", "ProcessGroup")))
 
 
-def resume_config(cfg, overrides: list[str]) -> TrainConfig:
+def resume_config(cfg, overrides: list[str], own_command: bool = False) -> TrainConfig:
     """``ckpt_path=...``: the checkpoint's own config, with only the keys this command line sets
-    (e.g. ``epochs=20``) taken from the composed ``cfg``; no need to retype the original overrides."""
+    (e.g. ``epochs=20``) taken from the composed ``cfg``; no need to retype the original overrides.
+    ``own_command``: a sweep or cluster job started again with the command that wrote the checkpoint
+    (``keep_finished_job``): its experiment override is the checkpoint's own, not a change."""
     state = checkpoint.load(cfg.ckpt_path)
     saved = OmegaConf.create(state["config"])
     composed = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
@@ -73,6 +75,8 @@ def resume_config(cfg, overrides: list[str]) -> TrainConfig:
         if key in ("ckpt_path", "hydra") or key.startswith(("hydra.", "hydra/")):
             continue
         if key == "experiment":
+            if own_command:
+                continue
             raise ValueError(f"ckpt_path={cfg.ckpt_path}: resuming takes the checkpoint's own setup; "
                              f"drop {o!r} (or set its keys one by one)")
         OmegaConf.update(saved, key, OmegaConf.select(composed, key), merge=False)
@@ -187,10 +191,11 @@ def _app(cfg) -> list[float] | None:
             return
         sys.exit(2)
     try:
+        given = cfg.ckpt_path
         if keep_finished_job(cfg, run_dir, hc.mode == RunMode.MULTIRUN):
             return objective_values(run_dir, cfg.objectives)
         if cfg.ckpt_path:  # (a finished run's metrics.json is kept aside once the resume is accepted)
-            tcfg = resume_config(cfg, list(hc.overrides.task))
+            tcfg = resume_config(cfg, list(hc.overrides.task), own_command=not given)
         else:
             tcfg = OmegaConf.to_object(cfg)
         if tcfg.threads is None:  # parallel local sweep: split the cores between the jobs
