@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -90,3 +92,64 @@ def test_cli_prints_the_table_and_the_path_last(tmp_path):
     assert out.returncode == 0, out.stderr
     lines = out.stdout.strip().splitlines()
     assert lines[-1] == str(tmp_path / "tradeoff.md") and "| views | image_size | runs |" in out.stdout
+
+
+@pytest.fixture(scope="module")
+def trained_sweep(tmp_path_factory):
+    """Two one-epoch runs (fixed and learned views) of a real sweep."""
+    import os
+
+    root = tmp_path_factory.mktemp("retime")
+    r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "-m", "selector=spherical,mvtn_spherical", "epochs=1",
+                        "views=1", "image_size=16", "backbone=small_cnn", "dataset.num_per_class=[2,2,2]", "threads=1",
+                        "logger.progress=false", f"paths.cache_dir={root / 'cache'}", f"hydra.sweep.dir={root / 'sweep'}"],
+                       capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    return root / "sweep"
+
+
+def _copy(sweep, tmp_path):
+    import shutil
+
+    return Path(shutil.copytree(sweep, tmp_path / "sweep"))
+
+
+def test_retime_times_each_run_again_and_the_fronts_use_those_times(trained_sweep, tmp_path, capsys):
+    """--retime rebuilds each finished run from its best.pt, reproduces its test accuracy, and the
+    tables and fronts carry the new times (the runs' own, here made absurd, are not used)."""
+    sweep = _copy(trained_sweep, tmp_path)
+    jobs = sorted(p for p in sweep.iterdir() if (p / "metrics.json").is_file())
+    assert len(jobs) == 2
+    for job in jobs:
+        m = json.loads((job / "metrics.json").read_text())
+        m["cost"]["infer_ms_per_shape"] = 12345.0
+        (job / "metrics.json").write_text(json.dumps(m))
+    main([str(sweep), "--retime", "--passes", "2", "--metric", "best_val_acc", "--against", str(sweep)])
+    out = capsys.readouterr().out
+    assert "timed again" in out and "12345" not in out
+    timed = {}
+    for job in jobs:
+        rec = json.loads((job / "retimed.json").read_text())
+        assert len(rec["passes_ms"]) == 2 and rec["infer_ms_per_shape"] == pytest.approx(sum(rec["passes_ms"]) / 2)
+        assert rec["test_acc"] == json.loads((job / "metrics.json").read_text())["test_acc"] and rec["threads"] == 1
+        assert 0 < rec["infer_ms_per_shape"] < 12345.0
+        timed[job.name] = rec["infer_ms_per_shape"]
+    rows = {r["job"]: float(r["infer_ms_per_shape"]) for r in csv.DictReader(open(sweep / "tradeoff_jobs.csv"))}
+    assert rows == pytest.approx(timed)
+    assert "timed again" in (sweep / "fronts.md").read_text()
+
+
+@pytest.mark.parametrize("spoil, needle", [
+    (lambda job: (job / "best.pt").unlink(), "best.pt: not found"),
+    (lambda job: (job / "metrics.json").write_text(json.dumps({**json.loads((job / "metrics.json").read_text()),
+                                                               "test_acc": 0.123456})), "disagree"),
+])
+def test_retime_refuses_a_run_it_cannot_reproduce_in_one_line(trained_sweep, tmp_path, capsys, spoil, needle):
+    sweep = _copy(trained_sweep, tmp_path)
+    job = sorted(p for p in sweep.iterdir() if (p / "metrics.json").is_file())[0]
+    spoil(job)
+    with pytest.raises(SystemExit) as e:
+        main([str(sweep), "--retime"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and needle in err[0] and err[0].startswith("mvtn-tradeoff: "), err
+    assert not (sweep / "tradeoff.md").exists()

@@ -4,7 +4,10 @@ Writes ``tradeoff.csv`` (per setting), ``tradeoff_jobs.csv`` (per job), ``tradeo
 ``pareto.png`` into DIR, prints the Markdown and, last, the path of ``tradeoff.md``.
 ``--metric best_val_acc`` draws the front on validation accuracy (a search or grid that chooses
 on validation); ``--against OTHER ...`` also prints the hypervolume of DIR's front and of each
-OTHER's with one reference point (a search against a grid) and writes it to DIR/fronts.md. A
+OTHER's with one reference point (a search against a grid) and writes it to DIR/fronts.md.
+``--retime`` first times every finished job's test pass again, one at a time in this process
+(``engine/retime.py``), and draws the fronts on those times: folders trained on different
+machines, or beside other jobs, become comparable in time. A
 folder with no finished job, with jobs from different datasets or with a job whose metrics lack
 the cost fields or the metric: one line on stderr naming it, exit code 2. Failed jobs are
 listed, not dropped.
@@ -14,8 +17,11 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..data.shapes import ShapeError
+from ..engine.checkpoint import CheckpointMismatch
 from ..engine.provenance import package_version
-from ..engine.tradeoff import METRICS, TradeoffError, compare_fronts, write_tradeoff
+from ..engine.retime import RetimeError, retime_folders
+from ..engine.tradeoff import METRICS, TradeoffError, compare_fronts, job_rows, write_tradeoff
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -23,18 +29,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("sweep_dir", metavar="DIR", help="a sweep folder written by mvtn-train -m")
     p.add_argument("--metric", default="test_acc", choices=METRICS, help="the accuracy of the front (default test_acc)")
     p.add_argument("--against", nargs="+", default=[], metavar="OTHER", help="folders whose fronts to set beside DIR's")
+    p.add_argument("--retime", action="store_true",
+                   help="time every finished job's test pass again here, one at a time, and use those times")
+    p.add_argument("--passes", type=int, default=3, help="timed test passes per job with --retime (default 3)")
     p.add_argument("--version", action="version", version=f"mvtn-tradeoff (mvtn-exp {package_version()})")
     return p
 
 
 def main(argv=None) -> None:
     args = build_parser().parse_args(argv)
+    if args.passes < 1:
+        print(f"mvtn-tradeoff: --passes {args.passes}: expected at least 1", file=sys.stderr)
+        raise SystemExit(2)
+    dirs = [args.sweep_dir, *args.against]
     try:
-        out = write_tradeoff(args.sweep_dir, args.metric)
-        fronts = compare_fronts([args.sweep_dir, *args.against], args.metric) if args.against else None
+        if args.retime:
+            for d in dirs:
+                job_rows(d)  # every folder readable before anything is timed
+            retime_folders(dirs, args.passes)
+        out = write_tradeoff(args.sweep_dir, args.metric, args.retime)
+        fronts = compare_fronts(dirs, args.metric, args.retime) if args.against else None
         if fronts:
             (out["md"].parent / "fronts.md").write_text(fronts["md"])
-    except (TradeoffError, OSError) as e:
+    except (TradeoffError, RetimeError, CheckpointMismatch, ShapeError, OSError) as e:
         print(f"mvtn-tradeoff: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     print(out["md"].read_text())

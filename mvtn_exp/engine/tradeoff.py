@@ -42,8 +42,10 @@ class TradeoffError(ValueError):
     """A sweep folder the study cannot read (no finished job, mixed datasets, missing cost)."""
 
 
-def job_rows(sweep_dir) -> list[dict]:
-    """Every job of the sweep with its status; finished ones carry ``test_acc``, ``dataset`` and the cost."""
+def job_rows(sweep_dir, retimed: bool = False) -> list[dict]:
+    """Every job of the sweep with its status; finished ones carry ``test_acc``, ``dataset`` and the cost.
+    ``retimed``: ``infer_ms_per_shape`` from each finished job's ``retimed.json`` (``engine/retime.py``),
+    the run's own timing kept as ``infer_ms_in_run``."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise TradeoffError(f"{sweep_dir}: not a folder")
@@ -58,6 +60,9 @@ def job_rows(sweep_dir) -> list[dict]:
             raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no cost fields {missing[:3]}"
                                 f"{'...' if len(missing) > 3 else ''} (written by runs since 2026-12-02; re-run the job)")
         r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"], best_val_acc=m.get("best_val_acc"))
+        if retimed:
+            r["infer_ms_in_run"] = r["infer_ms_per_shape"]
+            r["infer_ms_per_shape"] = _retimed_ms(sweep_dir / r["job"])
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
         raise TradeoffError(f"{sweep_dir}: no finished job (a job folder with metrics.json) among {len(rows)}")
@@ -67,6 +72,15 @@ def job_rows(sweep_dir) -> list[dict]:
         raise TradeoffError(f"{sweep_dir}: jobs from different datasets "
                             + ", ".join(f"{d} (e.g. {j})" for d, j in first.items()) + "; compare one dataset")
     return rows
+
+
+def _retimed_ms(job_dir: Path) -> float:
+    from .retime import RETIMED
+
+    path = job_dir / RETIMED
+    if not path.is_file():
+        raise TradeoffError(f"{path}: not found (mvtn-tradeoff --retime times every finished job again)")
+    return float(json.loads(path.read_text())["infer_ms_per_shape"])
 
 
 def _number(v: str):
@@ -166,21 +180,28 @@ def _csv(path: Path, rows: list[dict], fields: list[str]) -> None:
         w.writerows(rows)
 
 
-def _metric_rows(sweep_dir: Path, metric: str) -> list[dict]:
+def _metric_rows(sweep_dir: Path, metric: str, retimed: bool = False) -> list[dict]:
     if metric not in METRICS:
         raise TradeoffError(f"--metric {metric}: expected one of {', '.join(METRICS)}")
-    rows = job_rows(sweep_dir)
+    rows = job_rows(sweep_dir, retimed)
     for r in rows:
         if r.get("status") == "ok" and r.get(metric) is None:
             raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no {metric}")
     return rows
 
 
-def write_tradeoff(sweep_dir, metric: str = "test_acc") -> dict:
+def _timing_line(retimed: bool) -> str:
+    return ("Inference ms per shape: each run's test pass timed again, one run at a time in one process "
+            "(`retimed.json`: the median of its passes after a warm-up), not as timed inside the training job."
+            if retimed else "Inference ms per shape: as timed inside each training job (beside whatever ran there).")
+
+
+def write_tradeoff(sweep_dir, metric: str = "test_acc", retimed: bool = False) -> dict:
     """Write the four files (module docstring) into ``sweep_dir``; returns their paths, the setting
-    rows, the key effects and the failed jobs. Raises ``TradeoffError`` for a folder it cannot read."""
+    rows, the key effects and the failed jobs. Raises ``TradeoffError`` for a folder it cannot read.
+    ``retimed``: inference times from the jobs' ``retimed.json`` (``job_rows``)."""
     sweep_dir = Path(sweep_dir)
-    rows = _metric_rows(sweep_dir, metric)
+    rows = _metric_rows(sweep_dir, metric, retimed)
     per_setting, swept = settings(rows, metric)
     effects = key_effects(per_setting, swept)
     failed = failed_jobs(sweep_dir, rows)
@@ -193,7 +214,8 @@ def write_tradeoff(sweep_dir, metric: str = "test_acc") -> dict:
     lines = ["# Speed/accuracy trade", "", f"{len(rows)} jobs in `{sweep_dir}`, {len(per_setting)} settings, "
              f"dataset `{next(r['dataset'] for r in rows if r.get('status') == 'ok')}`; the front on "
              f"{'validation accuracy (test accuracy beside it, read once per run)' if val else 'test accuracy'}.", "",
-             "P: Pareto-optimal (inference / training time): no setting is at least as accurate and as fast.", "",
+             "P: Pareto-optimal (inference / training time): no setting is at least as accurate and as fast.",
+             _timing_line(retimed), "",
              "| " + " | ".join(swept) + f" | runs | {head} | infer ms/shape | train s/shape | train / infer peak MiB "
              "| params G / C | GFLOPs G / C per shape | render ms/shape | P |",
              "|" + "---|" * (len(swept) + 9 + val)]
@@ -241,14 +263,14 @@ def _elapsed_s(sweep_dir: Path, rows: list[dict]) -> float:
     return max(ends) - min(starts) if starts and ends else float("nan")
 
 
-def compare_fronts(dirs, metric: str = "best_val_acc") -> dict:
+def compare_fronts(dirs, metric: str = "best_val_acc", retimed: bool = False) -> dict:
     """The inference-time fronts of several folders (a search against a grid) by hypervolume, all
     with one reference point: the lowest accuracy and the longest inference time of any setting
     of any folder. Returns ``rows`` (folder, jobs, settings, front size, hypervolume, elapsed s)
     and ``md`` (the table)."""
     found = []
     for d in map(Path, dirs):
-        rows = _metric_rows(d, metric)
+        rows = _metric_rows(d, metric, retimed)
         found.append((d, rows, settings(rows, metric)[0]))
     every = [s for _, _, per in found for s in per]
     ref = (min(s["acc"] for s in every), max(s["infer_ms_per_shape"] for s in every))
@@ -261,7 +283,7 @@ def compare_fronts(dirs, metric: str = "best_val_acc") -> dict:
                     "best_acc": max(s["acc"] for s in per)})
     lines = [f"Hypervolume of each folder's front ({'validation' if metric == 'best_val_acc' else 'test'} accuracy "
              f"against inference ms per shape), in accuracy points x decades of time, from the common reference "
-             f"(accuracy {ref[0]:.3f}, {ref[1]:.2f} ms: the worst of every setting).", "",
+             f"(accuracy {ref[0]:.3f}, {ref[1]:.2f} ms: the worst of every setting). {_timing_line(retimed)}", "",
              "| folder | jobs (finished) | settings | front | best acc | hypervolume | elapsed |", "|---|---|---|---|---|---|---|"]
     lines += [f"| `{r['dir']}` | {r['jobs']} ({r['finished']}) | {r['settings']} | {r['front']} | {r['best_acc']:.3f} | "
               f"{r['hypervolume']:.2f} | {r['elapsed_s'] / 60:.1f} min |" for r in out]
