@@ -68,6 +68,24 @@ def test_settings_front_and_effects_match_hand_work(tmp_path):
     assert out["png"].stat().st_size > 10_000
 
 
+def test_one_seed_reads_only_that_seeds_runs_into_files_of_its_own(tmp_path, capsys):
+    """--seed 1: each setting is its seed-1 run (the hand-made grid's second accuracy and time), the
+    front and the hypervolume are that seed's, and the all-seed tables are left as they were."""
+    _sweep(tmp_path)
+    main([str(tmp_path)])
+    whole = (tmp_path / "tradeoff.md").read_text()
+    main([str(tmp_path), "--seed", "1", "--against", str(tmp_path)])
+    assert (tmp_path / "tradeoff.md").read_text() == whole
+    rows = {(r["views"], r["image_size"]): r for r in csv.DictReader(open(tmp_path / "tradeoff-seed1.csv"))}
+    assert set(rows) == {(str(v), str(s)) for v, s in GRID}
+    for (v, s), (_, a1, ms, _) in GRID.items():
+        r = rows[(str(v), str(s))]
+        assert (float(r["test_acc"]), float(r["infer_ms_per_shape"]), r["seeds"]) == pytest.approx((a1, ms * 1.1, "1"))
+    # seed 1's inference front: 1x32 (0.60, 1.1 ms), 1x64 (0.70, 3.3), 4x64 (0.80, 13.2); 4x32 (0.70, 4.4) is beaten
+    assert {k for k, r in rows.items() if r["pareto_infer"] == "True"} == {("1", "32"), ("1", "64"), ("4", "64")}
+    assert "seed 1 only" in (tmp_path / "fronts-seed1.md").read_text() and (tmp_path / "pareto-seed1.png").is_file()
+
+
 @pytest.mark.parametrize("make, needle", [
     (lambda d: None, "no finished job"),
     (lambda d: _job(d, "0_seed=0", ["seed=0"], status={"status": "failed", "error": "x"}), "no finished job"),

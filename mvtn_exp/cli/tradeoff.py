@@ -5,6 +5,8 @@ Writes ``tradeoff.csv`` (per setting), ``tradeoff_jobs.csv`` (per job), ``tradeo
 ``--metric best_val_acc`` draws the front on validation accuracy (a search or grid that chooses
 on validation); ``--against OTHER ...`` also prints the hypervolume of DIR's front and of each
 OTHER's with one reference point (a search against a grid) and writes it to DIR/fronts.md.
+``--seed N`` reads only the runs of seed N (a grid's seed-0 runs against a search's one run per
+setting), its files named ``tradeoff-seedN.md`` etc.
 ``--retime`` first times every finished job's test pass again, one at a time in this process
 (``engine/retime.py``), and draws the fronts on those times: folders trained on different
 machines, or beside other jobs, become comparable in time. A
@@ -16,12 +18,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from ..data.shapes import ShapeError
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.provenance import package_version
-from ..engine.retime import RetimeError, retime_folders
-from ..engine.tradeoff import METRICS, TradeoffError, compare_fronts, job_rows, write_tradeoff
+from ..engine.retime import RetimeError, retime_jobs
+from ..engine.tradeoff import METRICS, TradeoffError, compare_fronts, job_rows, output_name, write_tradeoff
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -31,6 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--against", nargs="+", default=[], metavar="OTHER", help="folders whose fronts to set beside DIR's")
     p.add_argument("--retime", action="store_true",
                    help="time every finished job's test pass again here, one at a time, and use those times")
+    p.add_argument("--seed", type=int, default=None,
+                   help="only the runs of this seed (e.g. a grid's seed-0 runs against a search's one run per "
+                        "setting); files get a -seedN suffix")
     p.add_argument("--passes", type=int, default=3, help="timed test passes per job with --retime (default 3)")
     p.add_argument("--version", action="version", version=f"mvtn-tradeoff (mvtn-exp {package_version()})")
     return p
@@ -44,13 +50,12 @@ def main(argv=None) -> None:
     dirs = [args.sweep_dir, *args.against]
     try:
         if args.retime:
-            for d in dirs:
-                job_rows(d)  # every folder readable before anything is timed
-            retime_folders(dirs, args.passes)
-        out = write_tradeoff(args.sweep_dir, args.metric, args.retime)
-        fronts = compare_fronts(dirs, args.metric, args.retime) if args.against else None
+            jobs = [Path(d) / r["job"] for d in dirs for r in job_rows(d, seed=args.seed) if r.get("status") == "ok"]
+            retime_jobs(jobs, args.passes)  # (every folder read before anything is timed)
+        out = write_tradeoff(args.sweep_dir, args.metric, args.retime, args.seed)
+        fronts = compare_fronts(dirs, args.metric, args.retime, args.seed) if args.against else None
         if fronts:
-            (out["md"].parent / "fronts.md").write_text(fronts["md"])
+            (out["md"].parent / output_name("fronts.md", args.seed)).write_text(fronts["md"])
     except (TradeoffError, RetimeError, CheckpointMismatch, ShapeError, OSError) as e:
         print(f"mvtn-tradeoff: {e}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -73,14 +73,9 @@ def retime_job(job_dir, passes: int = 3) -> dict:
     return out
 
 
-def retime_folders(dirs, passes: int = 3, progress: bool = True) -> int:
-    """``retime_job`` on every finished job (a folder with ``metrics.json``) of every sweep folder in
-    ``dirs``, one after another; returns how many were timed."""
+def retime_jobs(jobs, passes: int = 3, progress: bool = True) -> None:
+    """``retime_job`` on each finished job folder of ``jobs``, one after another (a bar on a terminal)."""
     from tqdm.auto import tqdm
 
-    from .sweep import collect
-
-    jobs = [Path(d) / r["job"] for d in dirs for r in collect(d) if r.get("status") == "ok"]
-    for job in tqdm(jobs, desc="re-timing", disable=None if progress else True):
+    for job in tqdm(list(jobs), desc="re-timing", disable=None if progress else True):
         retime_job(job, passes)
-    return len(jobs)

@@ -42,14 +42,17 @@ class TradeoffError(ValueError):
     """A sweep folder the study cannot read (no finished job, mixed datasets, missing cost)."""
 
 
-def job_rows(sweep_dir, retimed: bool = False) -> list[dict]:
+def job_rows(sweep_dir, retimed: bool = False, seed: int | None = None) -> list[dict]:
     """Every job of the sweep with its status; finished ones carry ``test_acc``, ``dataset`` and the cost.
     ``retimed``: ``infer_ms_per_shape`` from each finished job's ``retimed.json`` (``engine/retime.py``),
-    the run's own timing kept as ``infer_ms_in_run``."""
+    the run's own timing kept as ``infer_ms_in_run``. ``seed``: only the jobs of that run seed (its
+    composed config's ``seed``), e.g. a grid's seed-0 runs against a search's one run per setting."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise TradeoffError(f"{sweep_dir}: not a folder")
     rows = collect(sweep_dir)
+    if seed is not None:
+        rows = [r for r in rows if _job_seed(sweep_dir / r["job"], r["overrides"]) == seed]
     for r in rows:
         if r.get("status") != "ok":
             continue
@@ -72,6 +75,23 @@ def job_rows(sweep_dir, retimed: bool = False) -> list[dict]:
         raise TradeoffError(f"{sweep_dir}: jobs from different datasets "
                             + ", ".join(f"{d} (e.g. {j})" for d, j in first.items()) + "; compare one dataset")
     return rows
+
+
+def _job_seed(job_dir: Path, overrides: list[str]):
+    """The run seed of a job: its ``seed=N`` override, else its composed config's ``seed``."""
+    import yaml
+
+    given = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0].lstrip("+") == "seed"]
+    if given:
+        return int(given[-1])
+    path = job_dir / ".hydra" / "config.yaml"
+    return (yaml.safe_load(path.read_text()) or {}).get("seed") if path.is_file() else None
+
+
+def output_name(name: str, seed: int | None) -> str:
+    """``tradeoff.md`` -> ``tradeoff-seed0.md`` for the tables of one seed (the all-seed files stay)."""
+    stem, dot, ext = name.partition(".")
+    return name if seed is None else f"{stem}-seed{seed}{dot}{ext}"
 
 
 def _retimed_ms(job_dir: Path) -> float:
@@ -180,10 +200,10 @@ def _csv(path: Path, rows: list[dict], fields: list[str]) -> None:
         w.writerows(rows)
 
 
-def _metric_rows(sweep_dir: Path, metric: str, retimed: bool = False) -> list[dict]:
+def _metric_rows(sweep_dir: Path, metric: str, retimed: bool = False, seed: int | None = None) -> list[dict]:
     if metric not in METRICS:
         raise TradeoffError(f"--metric {metric}: expected one of {', '.join(METRICS)}")
-    rows = job_rows(sweep_dir, retimed)
+    rows = job_rows(sweep_dir, retimed, seed)
     for r in rows:
         if r.get("status") == "ok" and r.get(metric) is None:
             raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no {metric}")
@@ -196,22 +216,24 @@ def _timing_line(retimed: bool) -> str:
             if retimed else "Inference ms per shape: as timed inside each training job (beside whatever ran there).")
 
 
-def write_tradeoff(sweep_dir, metric: str = "test_acc", retimed: bool = False) -> dict:
+def write_tradeoff(sweep_dir, metric: str = "test_acc", retimed: bool = False, seed: int | None = None) -> dict:
     """Write the four files (module docstring) into ``sweep_dir``; returns their paths, the setting
     rows, the key effects and the failed jobs. Raises ``TradeoffError`` for a folder it cannot read.
-    ``retimed``: inference times from the jobs' ``retimed.json`` (``job_rows``)."""
+    ``retimed`` / ``seed``: inference times from the jobs' ``retimed.json``, one seed's jobs (``job_rows``)."""
     sweep_dir = Path(sweep_dir)
-    rows = _metric_rows(sweep_dir, metric, retimed)
+    rows = _metric_rows(sweep_dir, metric, retimed, seed)
     per_setting, swept = settings(rows, metric)
     effects = key_effects(per_setting, swept)
     failed = failed_jobs(sweep_dir, rows)
     val = metric == "best_val_acc"
     jobs = [{**_override_values(r["overrides"]), **r} for r in rows]
-    _csv(sweep_dir / "tradeoff_jobs.csv", jobs, ["job", *swept, "seed", "status", "best_val_acc", "test_acc", *COST_FIELDS])
-    _csv(sweep_dir / "tradeoff.csv", per_setting, [*swept, "seeds", *(("acc", "acc_std") if val else ()), "test_acc",
+    name = {n: sweep_dir / output_name(n, seed) for n in ("tradeoff_jobs.csv", "tradeoff.csv", "tradeoff.md", "pareto.png")}
+    _csv(name["tradeoff_jobs.csv"], jobs, ["job", *swept, "seed", "status", "best_val_acc", "test_acc", *COST_FIELDS])
+    _csv(name["tradeoff.csv"], per_setting, [*swept, "seeds", *(("acc", "acc_std") if val else ()), "test_acc",
                                                    "test_acc_std", *COST_FIELDS, "pareto_infer", "pareto_train"])
     head = "val acc | test acc" if val else "test acc"
-    lines = ["# Speed/accuracy trade", "", f"{len(rows)} jobs in `{sweep_dir}`, {len(per_setting)} settings, "
+    lines = ["# Speed/accuracy trade", "", f"{len(rows)} jobs in `{sweep_dir}`"
+             f"{'' if seed is None else f' (those of seed {seed})'}, {len(per_setting)} settings, "
              f"dataset `{next(r['dataset'] for r in rows if r.get('status') == 'ok')}`; the front on "
              f"{'validation accuracy (test accuracy beside it, read once per run)' if val else 'test accuracy'}.", "",
              "P: Pareto-optimal (inference / training time): no setting is at least as accurate and as fast.",
@@ -234,10 +256,10 @@ def write_tradeoff(sweep_dir, metric: str = "test_acc", retimed: bool = False) -
               f"{e['train_factor']:.2f} |" for e in effects]
     if failed:
         lines += ["", f"## Failed jobs ({len(failed)}, not in the tables)", ""] + [f"- {f}" for f in failed]
-    md = sweep_dir / "tradeoff.md"
+    md = name["tradeoff.md"]
     md.write_text("\n".join(lines) + "\n")
-    png = pareto_png(per_setting, swept, sweep_dir / "pareto.png", metric)
-    return {"csv": sweep_dir / "tradeoff.csv", "jobs_csv": sweep_dir / "tradeoff_jobs.csv", "md": md, "png": png,
+    png = pareto_png(per_setting, swept, name["pareto.png"], metric)
+    return {"csv": name["tradeoff.csv"], "jobs_csv": name["tradeoff_jobs.csv"], "md": md, "png": png,
             "settings": per_setting, "effects": effects, "failed": failed}
 
 
@@ -263,14 +285,14 @@ def _elapsed_s(sweep_dir: Path, rows: list[dict]) -> float:
     return max(ends) - min(starts) if starts and ends else float("nan")
 
 
-def compare_fronts(dirs, metric: str = "best_val_acc", retimed: bool = False) -> dict:
+def compare_fronts(dirs, metric: str = "best_val_acc", retimed: bool = False, seed: int | None = None) -> dict:
     """The inference-time fronts of several folders (a search against a grid) by hypervolume, all
     with one reference point: the lowest accuracy and the longest inference time of any setting
     of any folder. Returns ``rows`` (folder, jobs, settings, front size, hypervolume, elapsed s)
     and ``md`` (the table)."""
     found = []
     for d in map(Path, dirs):
-        rows = _metric_rows(d, metric, retimed)
+        rows = _metric_rows(d, metric, retimed, seed)
         found.append((d, rows, settings(rows, metric)[0]))
     every = [s for _, _, per in found for s in per]
     ref = (min(s["acc"] for s in every), max(s["infer_ms_per_shape"] for s in every))
@@ -283,7 +305,8 @@ def compare_fronts(dirs, metric: str = "best_val_acc", retimed: bool = False) ->
                     "best_acc": max(s["acc"] for s in per)})
     lines = [f"Hypervolume of each folder's front ({'validation' if metric == 'best_val_acc' else 'test'} accuracy "
              f"against inference ms per shape), in accuracy points x decades of time, from the common reference "
-             f"(accuracy {ref[0]:.3f}, {ref[1]:.2f} ms: the worst of every setting). {_timing_line(retimed)}", "",
+             f"(accuracy {ref[0]:.3f}, {ref[1]:.2f} ms: the worst of every setting)"
+             f"{'' if seed is None else f', the runs of seed {seed} only'}. {_timing_line(retimed)}", "",
              "| folder | jobs (finished) | settings | front | best acc | hypervolume | elapsed |", "|---|---|---|---|---|---|---|"]
     lines += [f"| `{r['dir']}` | {r['jobs']} ({r['finished']}) | {r['settings']} | {r['front']} | {r['best_acc']:.3f} | "
               f"{r['hypervolume']:.2f} | {r['elapsed_s'] / 60:.1f} min |" for r in out]
