@@ -84,6 +84,10 @@ def test_one_seed_reads_only_that_seeds_runs_into_files_of_its_own(tmp_path, cap
     # seed 1's inference front: 1x32 (0.60, 1.1 ms), 1x64 (0.70, 3.3), 4x64 (0.80, 13.2); 4x32 (0.70, 4.4) is beaten
     assert {k for k, r in rows.items() if r["pareto_infer"] == "True"} == {("1", "32"), ("1", "64"), ("4", "64")}
     assert "seed 1 only" in (tmp_path / "fronts-seed1.md").read_text() and (tmp_path / "pareto-seed1.png").is_file()
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path), "--seed", "7"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "among 0 of seed 7" in err[0], err
 
 
 @pytest.mark.parametrize("make, needle", [

@@ -50,7 +50,8 @@ def main(argv=None) -> None:
     dirs = [args.sweep_dir, *args.against]
     try:
         if args.retime:
-            jobs = [Path(d) / r["job"] for d in dirs for r in job_rows(d, seed=args.seed) if r.get("status") == "ok"]
+            jobs = [Path(d) / r["job"] for d in dict.fromkeys(dirs) for r in job_rows(d, seed=args.seed)
+                    if r.get("status") == "ok"]
             retime_jobs(jobs, args.passes)  # (every folder read before anything is timed)
         out = write_tradeoff(args.sweep_dir, args.metric, args.retime, args.seed)
         fronts = compare_fronts(dirs, args.metric, args.retime, args.seed) if args.against else None

@@ -68,7 +68,8 @@ def job_rows(sweep_dir, retimed: bool = False, seed: int | None = None) -> list[
             r["infer_ms_per_shape"] = _retimed_ms(sweep_dir / r["job"])
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
-        raise TradeoffError(f"{sweep_dir}: no finished job (a job folder with metrics.json) among {len(rows)}")
+        raise TradeoffError(f"{sweep_dir}: no finished job (a job folder with metrics.json) among {len(rows)}"
+                            + ("" if seed is None else f" of seed {seed}"))
     datasets = sorted({str(r["dataset"]) for r in ok})
     if len(datasets) > 1:
         first = {d: next(r["job"] for r in ok if str(r["dataset"]) == d) for d in datasets}
