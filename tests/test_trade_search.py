@@ -37,7 +37,7 @@ def _trial_dir(root, rows):
     """rows: (job name, overrides, val acc, test acc, inference ms)"""
     for name, overrides, val, test, ms in rows:
         m = _metrics(test, ms, 0.01)
-        m["best_val_acc"] = val
+        m["best_val_acc"], m["train_wall_seconds"] = val, 30.0
         _job(root, name, overrides, m)
     return root
 
@@ -64,6 +64,9 @@ def test_front_on_validation_and_fronts_by_hypervolume(tmp_path, capsys):
     want_search = 100 * (0.60 - 0.55) * math.log10(2) + 100 * (0.70 - 0.55) * math.log10(8 / 2)
     want_grid = 100 * (0.60 - 0.55) * math.log10(8 / 4)  # views=1 sits at the reference accuracy
     assert hv[str(search)] == pytest.approx(want_search) and hv[str(grid)] == pytest.approx(want_grid)
+    # job time: the jobs' own seconds summed (3 and 4 jobs of 30 s), not the folder's elapsed time
+    assert {r["dir"]: r["job_s"] for r in fronts["rows"]} == {str(search): 90.0, str(grid): 120.0}
+    assert "| 1.5 min |" in fronts["md"] and "| 2.0 min |" in fronts["md"]
     tradeoff_main([str(search), "--metric", "best_val_acc", "--against", str(grid)])
     printed = capsys.readouterr().out
     assert "## Fronts" in printed and f"{want_search:.2f}" in printed and (search / "fronts.md").is_file()

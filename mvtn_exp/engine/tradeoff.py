@@ -62,7 +62,8 @@ def job_rows(sweep_dir, retimed: bool = False, seed: int | None = None) -> list[
         if missing:
             raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no cost fields {missing[:3]}"
                                 f"{'...' if len(missing) > 3 else ''} (written by runs since 2026-12-02; re-run the job)")
-        r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"], best_val_acc=m.get("best_val_acc"))
+        r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"], best_val_acc=m.get("best_val_acc"),
+                 train_wall_seconds=m.get("train_wall_seconds"))
         if retimed:
             r["infer_ms_in_run"] = r["infer_ms_per_shape"]
             r["infer_ms_per_shape"] = _retimed_ms(sweep_dir / r["job"])
@@ -286,6 +287,16 @@ def _elapsed_s(sweep_dir: Path, rows: list[dict]) -> float:
     return max(ends) - min(starts) if starts and ends else float("nan")
 
 
+def _job_seconds(rows: list[dict]) -> float | None:
+    """The finished jobs' ``train_wall_seconds`` summed; None when one lacks it (runs before it was recorded)."""
+    walls = [r.get("train_wall_seconds") for r in rows if r.get("status") == "ok"]
+    return None if any(w is None for w in walls) else float(sum(walls))
+
+
+def _minutes(seconds) -> str:
+    return "n/a" if seconds is None or seconds != seconds else f"{seconds / 60:.1f} min"
+
+
 def compare_fronts(dirs, metric: str = "best_val_acc", retimed: bool = False, seed: int | None = None) -> dict:
     """The inference-time fronts of several folders (a search against a grid) by hypervolume, all
     with one reference point: the lowest accuracy and the longest inference time of any setting
@@ -302,13 +313,17 @@ def compare_fronts(dirs, metric: str = "best_val_acc", retimed: bool = False, se
         front = [s for s in per if s["pareto_infer"]]
         out.append({"dir": str(d), "jobs": len(rows), "finished": sum(r.get("status") == "ok" for r in rows),
                     "settings": len(per), "front": len(front), "elapsed_s": _elapsed_s(d, rows),
+                    "job_s": _job_seconds(rows),
                     "hypervolume": hypervolume([(s["acc"], s["infer_ms_per_shape"]) for s in front], ref),
                     "best_acc": max(s["acc"] for s in per)})
     lines = [f"Hypervolume of each folder's front ({'validation' if metric == 'best_val_acc' else 'test'} accuracy "
              f"against inference ms per shape), in accuracy points x decades of time, from the common reference "
              f"(accuracy {ref[0]:.3f}, {ref[1]:.2f} ms: the worst of every setting)"
              f"{'' if seed is None else f', the runs of seed {seed} only'}. {_timing_line(retimed)}", "",
-             "| folder | jobs (finished) | settings | front | best acc | hypervolume | elapsed |", "|---|---|---|---|---|---|---|"]
+             "Job time: the finished jobs' training and validation seconds summed (`train_wall_seconds`); elapsed: "
+             "from the first job's start to the last result, pauses included.", "",
+             "| folder | jobs (finished) | settings | front | best acc | hypervolume | job time | elapsed |",
+             "|---|---|---|---|---|---|---|---|"]
     lines += [f"| `{r['dir']}` | {r['jobs']} ({r['finished']}) | {r['settings']} | {r['front']} | {r['best_acc']:.3f} | "
-              f"{r['hypervolume']:.2f} | {r['elapsed_s'] / 60:.1f} min |" for r in out]
+              f"{r['hypervolume']:.2f} | {_minutes(r['job_s'])} | {_minutes(r['elapsed_s'])} |" for r in out]
     return {"rows": out, "ref": ref, "md": "\n".join(lines) + "\n"}
