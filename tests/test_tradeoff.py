@@ -159,6 +159,18 @@ def test_retime_times_each_run_again_and_the_fronts_use_those_times(trained_swee
     rows = {r["job"]: float(r["infer_ms_per_shape"]) for r in csv.DictReader(open(sweep / "tradeoff_jobs.csv"))}
     assert rows == pytest.approx(timed)
     assert "timed again" in (sweep / "fronts.md").read_text()
+    # --retimed reads those times again without timing: the records stay as they were
+    stamps = {job.name: (job / "retimed.json").stat().st_mtime_ns for job in jobs}
+    main([str(sweep), "--retimed", "--seed", "0"])
+    assert {job.name: (job / "retimed.json").stat().st_mtime_ns for job in jobs} == stamps
+    rows = {r["job"]: float(r["infer_ms_per_shape"]) for r in csv.DictReader(open(sweep / "tradeoff_jobs-seed0.csv"))}
+    assert rows == pytest.approx(timed)
+    (jobs[0] / "retimed.json").unlink()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main([str(sweep), "--retimed"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and len(err) == 1 and "retimed.json: not found" in err[0], err
 
 
 @pytest.mark.parametrize("spoil, needle", [

@@ -9,7 +9,8 @@ OTHER's with one reference point (a search against a grid) and writes it to DIR/
 setting), its files named ``tradeoff-seedN.md`` etc.
 ``--retime`` first times every finished job's test pass again, one at a time in this process
 (``engine/retime.py``), and draws the fronts on those times: folders trained on different
-machines, or beside other jobs, become comparable in time. A
+machines, or beside other jobs, become comparable in time; ``--retimed`` reads those times again
+(another ``--seed`` or ``--metric``) without timing anything. A
 folder with no finished job, with jobs from different datasets or with a job whose metrics lack
 the cost fields or the metric: one line on stderr naming it, exit code 2. Failed jobs are
 listed, not dropped.
@@ -34,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--against", nargs="+", default=[], metavar="OTHER", help="folders whose fronts to set beside DIR's")
     p.add_argument("--retime", action="store_true",
                    help="time every finished job's test pass again here, one at a time, and use those times")
+    p.add_argument("--retimed", action="store_true",
+                   help="use the times an earlier --retime wrote (each job's retimed.json) without timing again")
     p.add_argument("--seed", type=int, default=None,
                    help="only the runs of this seed (e.g. a grid's seed-0 runs against a search's one run per "
                         "setting); files get a -seedN suffix")
@@ -53,8 +56,9 @@ def main(argv=None) -> None:
             jobs = [Path(d) / r["job"] for d in dict.fromkeys(dirs) for r in job_rows(d, seed=args.seed)
                     if r.get("status") == "ok"]
             retime_jobs(jobs, args.passes)  # (every folder read before anything is timed)
-        out = write_tradeoff(args.sweep_dir, args.metric, args.retime, args.seed)
-        fronts = compare_fronts(dirs, args.metric, args.retime, args.seed) if args.against else None
+        retimed = args.retime or args.retimed
+        out = write_tradeoff(args.sweep_dir, args.metric, retimed, args.seed)
+        fronts = compare_fronts(dirs, args.metric, retimed, args.seed) if args.against else None
         if fronts:
             (out["md"].parent / output_name("fronts.md", args.seed)).write_text(fronts["md"])
     except (TradeoffError, RetimeError, CheckpointMismatch, ShapeError, OSError) as e:
