@@ -24,6 +24,7 @@ from pathlib import Path
 import torch
 
 from ..data.datasets import build_dataset
+from ..render import accel
 from ..tasks import classification
 from . import checkpoint
 from .provenance import provenance
@@ -49,6 +50,9 @@ def retime_job(job_dir, passes: int = 3) -> dict:
     recorded = json.loads((job_dir / "metrics.json").read_text())
     state = checkpoint.load(path, map_location="cpu")
     cfg = config_from_checkpoint(state, path)
+    problem = accel.unavailable(torch.device(cfg.device).type) if cfg.renderer.compile else None
+    if problem:  # a compiled run's time is its compiled renderer's: refused rather than timed eagerly
+        raise RetimeError(f"{job_dir}: renderer.compile=true, and {problem}; re-time it where it trained")
     threads = torch.get_num_threads()
     if cfg.threads:
         torch.set_num_threads(cfg.threads)

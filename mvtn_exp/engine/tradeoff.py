@@ -83,9 +83,9 @@ def _job_seed(job_dir: Path, overrides: list[str]):
     """The run seed of a job: its ``seed=N`` override, else its composed config's ``seed``."""
     import yaml
 
-    given = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0].lstrip("+") == "seed"]
-    if given:
-        return int(given[-1])
+    given = _override_values(overrides).get("seed")
+    if given is not None:
+        return int(given)
     path = job_dir / ".hydra" / "config.yaml"
     return (yaml.safe_load(path.read_text()) or {}).get("seed") if path.is_file() else None
 
