@@ -216,7 +216,10 @@ OBJECTIVES = ("best_val_acc", "cost.infer_ms_per_shape", "cost.train_seconds_per
 class TrainConfig:
     """``mvtn-train``. Top-level keys everyone reaches for; the rest in the groups.
 
-    ``views``: M; ``image_size``: rendered H = W (sets ``renderer.image_size``); ``seed``: the
+    ``views``: M; ``image_size``: rendered H = W (sets ``renderer.image_size``); ``patience``: stop
+    once this many epochs in a row have not raised the best validation accuracy (null: train all
+    ``epochs``; the learning-rate schedule still spans ``epochs``, and ``best.pt`` is tested as
+    always); ``seed``: the
     training seed (init, order, augmentation); ``ckpt_path``: resume from this checkpoint;
     ``threads``: torch's CPU threads for this process (null: torch's default, or under the joblib
     launcher the cores divided by the jobs that run at once); ``precision``: fp32, or autocast of
@@ -233,6 +236,7 @@ class TrainConfig:
     views: int = 4
     image_size: int = 64
     epochs: int = 8
+    patience: Optional[int] = None
     batch_size: int = 16
     seed: int = 0
     device: str = "cpu"
@@ -261,6 +265,8 @@ class TrainConfig:
         for key in ("views", "image_size", "epochs", "batch_size"):
             at_least(key, getattr(self, key), 1)
         at_least("seed", self.seed, 0)
+        if self.patience is not None:
+            at_least("patience", self.patience, 1)
         check_device("device", self.device)
         if self.threads is not None:
             at_least("threads", self.threads, 1)

@@ -11,8 +11,8 @@ from mvtn_exp.cli.compare import main, parse_seeds
 from mvtn_exp.engine.compare import CompareError, compare, find_runs
 
 
-def _config(selector="spherical", views=1, seed=0, dataset_seed=0, epochs=20, threads=1):
-    return {"seed": seed, "views": views, "epochs": epochs, "threads": threads, "device": "cpu",
+def _config(selector="spherical", views=1, seed=0, dataset_seed=0, epochs=20, threads=1, patience=None):
+    return {"seed": seed, "views": views, "epochs": epochs, "patience": patience, "threads": threads, "device": "cpu",
             "dataset": {"name": "synthetic_views", "seed": dataset_seed, "root": f"/somewhere/{threads}"},
             "selector": {"name": selector}, "paths": {"output_dir": f"/o{seed}"}}
 
@@ -84,7 +84,7 @@ def test_reference_where_group_and_metric(tmp_path, capsys):
     assert e.value.code == 2 and "no number under 'no_such_metric'" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("key,value", [("dataset_seed", 1), ("epochs", 40)])
+@pytest.mark.parametrize("key,value", [("dataset_seed", 1), ("epochs", 40), ("patience", 10)])
 def test_sides_that_differ_in_data_or_epochs_are_refused_unless_named(tmp_path, capsys, key, value):
     for s in range(3):
         _run(tmp_path, f"a{s}", 0.5, seed=s)
@@ -92,7 +92,7 @@ def test_sides_that_differ_in_data_or_epochs_are_refused_unless_named(tmp_path, 
     with pytest.raises(SystemExit) as e:
         main([str(tmp_path)])
     err = capsys.readouterr().err.strip()
-    name = {"dataset_seed": "dataset.seed", "epochs": "epochs"}[key]
+    name = {"dataset_seed": "dataset.seed", "epochs": "epochs", "patience": "patience"}[key]
     assert e.value.code == 2 and len(err.splitlines()) == 1 and err.startswith(f"mvtn-compare: {name}:")
     assert f"--key {name}" in err
     main([str(tmp_path), "--key", name.split(".")[0]])  # named: compared

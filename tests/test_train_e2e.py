@@ -518,3 +518,39 @@ def test_resume_with_weights_of_another_shape_is_one_line(cache, full_run, tmp_p
         train(tiny(cache, ckpt_path=str(tmp_path / "bent.pt")), tmp_path / "resumed")
     assert "\n" not in str(e.value) and name in str(e.value)
     assert not (tmp_path / "resumed" / "provenance.json").exists()  # refused before anything was written
+
+
+def _scripted_validation(monkeypatch, accs):
+    """Validation accuracy as scripted, epoch by epoch (the rest of validation runs as usual)."""
+    import mvtn_exp.engine.trainer as trainer
+
+    real, calls = trainer.validate, iter(accs)
+
+    def validate(*a, **kw):
+        val, val_ema = real(*a, **kw)
+        return {**val, "acc": next(calls)}, val_ema
+
+    monkeypatch.setattr(trainer, "validate", validate)
+
+
+def test_patience_stops_after_epochs_without_a_better_validation(cache, tmp_path, monkeypatch):
+    """patience=2: best 0.5 at epoch 2, not beaten at 3 (0.4) or 4 (0.5, a tie): stop before epoch 5;
+    best.pt (epoch 2) is tested; the stopped run, resumed, stops again without training."""
+    _scripted_validation(monkeypatch, [0.3, 0.5, 0.4, 0.5, 0.9, 0.9])
+    m = train(tiny(cache, epochs=6, patience=2), tmp_path / "a")
+    assert (m["epochs"], m["epochs_trained"], m["stopped_early"]) == (6, 4, True)
+    assert [h["val_acc"] for h in m["history"]] == [0.3, 0.5, 0.4, 0.5]
+    assert (m["best_val_acc"], m["best_epoch"]) == (0.5, 2)
+    assert torch.load(tmp_path / "a" / "best.pt", weights_only=True)["epoch"] == 2
+    assert "validation accuracy has not improved for 2 epochs (patience=2" in (tmp_path / "a" / "train.log").read_text()
+    again = train(tiny(cache, epochs=6, patience=2, ckpt_path=str(tmp_path / "a" / "last.pt")), tmp_path / "b")
+    assert again["epochs_trained"] == 4 and again["test_acc"] == m["test_acc"]
+    monkeypatch.undo()
+    _scripted_validation(monkeypatch, [0.3, 0.5, 0.4, 0.5, 0.9, 0.9])  # without patience: every epoch
+    full = train(tiny(cache, epochs=6), tmp_path / "c")
+    assert (full["epochs_trained"], full["stopped_early"], full["best_epoch"]) == (6, False, 5)
+
+
+def test_patience_must_be_at_least_one(cache, tmp_path):
+    with pytest.raises(ValueError, match=r"patience=0: must be >= 1"):
+        train(tiny(cache, patience=0), tmp_path)

@@ -36,7 +36,7 @@ from .sweep import STATUS_FILE
 
 RUN_LOCAL = ("seed", "device", "ckpt_path", "threads", "overwrite", "logger", "paths", "dataset.root", "dataset.cache_dir",
              "dataset.num_workers")
-PROTECTED = ("dataset", "epochs")  # data, its splits and the training length
+PROTECTED = ("dataset", "epochs", "patience")  # data, its splits and the training length
 
 
 class CompareError(ValueError):

@@ -357,6 +357,12 @@ def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, sca
     return start, best_acc, best_epoch, int(state["skipped_steps"]), list(state["history"]), int(state.get("step", 0))
 
 
+def patience_spent(patience: int | None, epoch: int, best_epoch: int) -> bool:
+    """Before 0-based ``epoch``: have ``patience`` epochs in a row passed since the best validation
+    accuracy (0-based ``best_epoch``; -1: none yet)? Always false without a patience."""
+    return patience is not None and epoch - 1 - best_epoch >= patience
+
+
 def write_results(run_dir: Path, metrics: dict) -> Path:
     """``metrics.json``, ``confusion.json`` and ``confusion.png`` in ``run_dir``; returns metrics.json's path."""
     conf = {"classes": metrics["classes"], "rows": "true class", "columns": "predicted class",
@@ -473,7 +479,8 @@ def run_metrics(cfg: TrainConfig, cfg_dict: dict, model, datasets: dict, test: d
         "test_acc": test["acc"], "test_mean_class_acc": test["mean_class_acc"], "test_loss": test["loss"],
         "test_per_class_acc": dict(zip(classes, test["per_class_acc"])),
         "confusion_matrix": test["confusion"], "classes": classes, "test_size": test["n"], "split": "test",
-        "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "steps": step,
+        "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "epochs_trained": len(history),
+        "stopped_early": len(history) < cfg.epochs, "steps": step,
         "best_weights": best_weights, "skipped_steps": skipped, "epoch_seconds": seconds,
         "mean_epoch_seconds": sum(seconds) / max(len(seconds), 1), "train_wall_seconds": sum(seconds),
         "step_seconds": timer.means(), "cost": costs,
@@ -547,6 +554,11 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 if restart:
                     best_acc, best_epoch = -1.0, -1
                     say(run_dir, restart)
+                elif patience_spent(cfg.patience, epoch, best_epoch):  # (a resumed run that stopped stops again)
+                    say(run_dir, f"stopped after epoch {epoch}/{cfg.epochs}: validation accuracy has not improved for "
+                                 f"{epoch - 1 - best_epoch} epochs (patience={cfg.patience}; best {best_acc:.4f} at "
+                                 f"epoch {best_epoch + 1})")
+                    break
                 lrs = {f"lr_{g['name']}": g["lr"] for g in opt.param_groups}
                 tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch, world), opt, cfg, epoch,
                                            loss_fn, timer, logger, step, g_training, scaler=scaler, ema=ema, world=world)
