@@ -242,3 +242,37 @@ def test_a_key_added_after_a_run_reads_as_its_current_default(tmp_path, capsys):
     main([str(tmp_path / "old"), str(tmp_path / "new"), str(tmp_path / "on"), "--out", str(tmp_path / "c")])
     out = capsys.readouterr().out
     assert "read as the current default: renderer.compile (3 runs)" in out
+
+
+def test_count_gives_each_sides_share_of_seeds_with_wilson_interval(tmp_path, capsys):
+    """test_detail_seen is acc / 2: fixed 0.25 / 0.30 / 0.275 / 0.20, learned 0.35 / 0.325 / 0.375 / 0.15;
+    >= 0.3 holds for 1 and 3 seeds of 4 (a tie at the bound counts); Wilson 95%: [0.046, 0.699], [0.301, 0.954]."""
+    _two_sides(tmp_path)
+    main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c"), "--count", "test_detail_seen>=0.3",
+          "--count", "test_acc<0.5"])
+    out = capsys.readouterr().out
+    assert "seeds with test_detail_seen>=0.3 [Wilson 95%] | seeds with test_acc<0.5 [Wilson 95%] |" in out
+    assert "| 1 of 4 [0.05, 0.70] | 1 of 4 [0.05, 0.70] |" in out  # fixed: 0.30 >= 0.3; acc 0.40 < 0.5
+    assert "| 3 of 4 [0.30, 0.95] | 1 of 4 [0.05, 0.70] |" in out  # learned: acc 0.30 < 0.5
+    side = json.loads((tmp_path / "c" / "compare.json").read_text())["groups"][0]["sides"][1]
+    low, high = side["counts"]["test_detail_seen>=0.3"]["low"], side["counts"]["test_detail_seen>=0.3"]["high"]
+    assert (low, high) == (pytest.approx(0.3006, abs=1e-4), pytest.approx(0.9544, abs=1e-4))
+
+
+@pytest.mark.parametrize("condition", ["test_detail_seen=0.5", "test_detail_seen>=", ">=0.5", "test_detail_seen>=a"])
+def test_a_bad_count_is_one_line_before_anything_runs(tmp_path, capsys, condition):
+    _two_sides(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(["--run", "selector=spherical", "--run", "selector=poi", "--seeds", "0-1", "--out", str(tmp_path / "o"),
+              "--count", condition])
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and err == f"mvtn-compare: --count {condition!r}: expected METRIC>=VALUE (or <=, >, <), " \
+                                        "e.g. test_detail_seen>=0.5"
+    assert not (tmp_path / "o").exists()
+
+
+def test_count_of_a_metric_a_run_lacks_names_it(tmp_path, capsys):
+    _two_sides(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "f"), str(tmp_path / "l"), "--count", "test_nothing>=1"])
+    assert e.value.code == 2 and "no number under 'test_nothing'" in capsys.readouterr().err

@@ -27,7 +27,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from ..engine.compare import CompareError, Side, _check_pair, compare, find_runs, flatten, to_markdown, write
+from ..engine.compare import (CompareError, Side, _check_pair, compare, find_runs, flatten, parse_count, to_markdown,
+                              write)
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -141,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ratio", action="append", default=[], metavar="METRIC",
                    help="metrics.json numbers (times, costs: train_wall_seconds) shown as each side's paired ratio "
                         "to the reference")
+    p.add_argument("--count", action="append", default=[], metavar="'METRIC>=VALUE'",
+                   help="count each side's seeds that meet the condition (>=, <=, >, <), with the Wilson 95%% interval "
+                        "of the share, e.g. 'test_detail_seen>=0.5' (the run's views found the detail)")
     p.add_argument("--run", action="append", metavar="'OVERRIDES'", help="one side to train: its mvtn-train overrides")
     p.add_argument("--seeds", help="with --run: the seeds every side trains at, e.g. 0-9")
     p.add_argument("--jobs", type=int, default=1, help="with --run: runs at once (one torch thread each when > 1)")
@@ -153,6 +157,8 @@ def main(argv=None) -> None:
     try:
         if args.jobs < 1:
             raise CompareError(f"--jobs {args.jobs}: expected 1 or more")
+        for condition in args.count:  # before anything is trained
+            parse_count(condition)
         if args.run:
             if len(args.run) < 2 or not args.seeds:
                 raise CompareError("--run: give at least two sides (--run 'A' --run 'B') and --seeds, e.g. --seeds 0-9")
@@ -174,7 +180,7 @@ def main(argv=None) -> None:
             out = Path(args.out) if args.out else (folders[0] if len(folders) == 1 else
                                                    Path(f"outputs/compare/{time.strftime('%Y-%m-%d_%H-%M-%S')}"))
         result = compare(find_runs(folders), args.metric, args.where, args.group, args.key, args.also, args.reference,
-                         args.ratio)
+                         args.ratio, args.count)
         if args.run:
             _relabel(result, out, args.run)
         md, _ = write(result, out)

@@ -12,7 +12,9 @@ reference side (the first) on the seeds both have:
   interval (Student's t with n - 1 degrees of freedom on the per-seed differences) and on how many
   seeds the side is ahead, tied and behind;
 - for costs (``ratios``, e.g. ``train_wall_seconds``): each side's paired ratio to the reference,
-  the geometric mean of the per-seed ratios with the paired-t interval of their logarithms.
+  the geometric mean of the per-seed ratios with the paired-t interval of their logarithms;
+- for outcomes (``counts``, e.g. ``test_detail_seen>=0.5``: the run found the detail): on how many
+  of its seeds each side meets the condition, with the Wilson 95% interval of that share.
 
 A comparison is refused (``CompareError``, one line naming the key) when the two sides differ in
 data, split or epochs (``PROTECTED``) unless that key is named as the one under comparison, when
@@ -28,6 +30,9 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import operator
+import re
 
 import yaml
 from scipy import stats
@@ -293,6 +298,33 @@ def paired(ref: list[float], other: list[float]) -> dict:
             "ahead": sum(x > 0 for x in d), "tied": sum(x == 0 for x in d), "behind": sum(x < 0 for x in d)}
 
 
+COMPARISONS = {">=": operator.ge, "<=": operator.le, ">": operator.gt, "<": operator.lt}
+
+
+def parse_count(text: str) -> tuple[str, str, float]:
+    """``'METRIC>=VALUE'`` (or ``<=``, ``>``, ``<``) -> ``(metric, operator, value)``."""
+    m = re.fullmatch(r"\s*([A-Za-z_][\w.]*)\s*(>=|<=|>|<)\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*", text)
+    if not m:
+        raise CompareError(f"--count {text!r}: expected METRIC>=VALUE (or <=, >, <), e.g. test_detail_seen>=0.5")
+    return m.group(1), m.group(2), float(m.group(3))
+
+
+def wilson(k: int, n: int) -> tuple[float, float]:
+    """The Wilson score 95% interval of a share ``k / n``."""
+    z = float(stats.norm.ppf(0.975))
+    p, d = k / n, 1 + z * z / n
+    centre, half = (p + z * z / (2 * n)) / d, z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def count(values: list[float], condition: str) -> dict:
+    """How many ``values`` meet ``condition`` (``parse_count``), of how many, with the Wilson interval."""
+    _, op, bound = parse_count(condition)
+    k = sum(COMPARISONS[op](v, bound) for v in values)
+    low, high = wilson(k, len(values))
+    return {"k": k, "n": len(values), "low": low, "high": high}
+
+
 def mean_sd(x: list[float]) -> tuple[float, float]:
     m = sum(x) / len(x)
     return m, (math.sqrt(sum((v - m) ** 2 for v in x) / (len(x) - 1)) if len(x) > 1 else 0.0)
@@ -352,11 +384,13 @@ def ratio(ref: list[float], side: list[float]) -> dict:
 
 
 def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, keys=(), also=(),
-            reference: str | None = None, ratios=()) -> dict:
+            reference: str | None = None, ratios=(), counts=()) -> dict:
     """The comparison as a dict (what ``compare.json`` holds); see the module docstring. ``ratios``:
-    metrics (times, costs) also given as each side's paired ratio to the reference (``ratio``)."""
+    metrics (times, costs) also given as each side's paired ratio to the reference (``ratio``);
+    ``counts``: conditions (``'METRIC>=VALUE'``) counted over each side's seeds (``count``)."""
+    conditions = {c: parse_count(c)[0] for c in counts}
     result = {"metric": metric, "interval": "95% paired t (Student's t, n - 1 df, on per-seed differences)",
-              "group": group, "groups": [], "ratios": list(ratios),
+              "group": group, "groups": [], "ratios": list(ratios), "counts": list(counts),
               "not_finished": [{"path": str(r.path), "status": r.status, "seed": r.seed, "error": r.error}
                                for r in runs if r.status != "ok"]}
     fill_added_keys(runs)
@@ -386,7 +420,8 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
                          also_values={k: [_value(side.runs[s], k) for s in seeds] for k in also},
                          ratios={k: None if side is ref else ratio([_value(ref.runs[s], k) for s in seeds],
                                                                    [_value(side.runs[s], k) for s in seeds])
-                                 for k in ratios})
+                                 for k in ratios},
+                         counts={c: count([_value(side.runs[s], m) for s in seeds], c) for c, m in conditions.items()})
             rows.append(entry)
         result["groups"].append({"group": g, "sides": rows})
     return result
@@ -400,6 +435,10 @@ def _ratio_cell(r) -> str:
     return "1 (reference)" if r is None else f"{r['ratio']:.2f} x [{r['ratio_low']:.2f}, {r['ratio_high']:.2f}]"
 
 
+def _count_cell(c: dict) -> str:
+    return f"{c['k']} of {c['n']} [{c['low']:.2f}, {c['high']:.2f}]"
+
+
 def to_markdown(result: dict) -> str:
     """``compare.md``: per group, the per-seed table and the summary table."""
     metric = result["metric"]
@@ -411,10 +450,12 @@ def to_markdown(result: dict) -> str:
             lines += [f"## {result['group']} = {_show(grp['group'])}", ""]
         seeds = sorted({s for side in sides for s in side["seeds"]}, key=lambda x: (str(type(x)), x))
         also, ratios = list(sides[0]["also"]), list(sides[0].get("ratios", {}))
+        counts = list(sides[0].get("counts", {}))
         lines += ["| side | seeds | " + metric + " (mean ± std) | " + "".join(f"{k} | " for k in also)
                   + "".join(f"{k} / reference [95%] | " for k in ratios)
+                  + "".join(f"seeds with {c} [Wilson 95%] | " for c in counts)
                   + "vs reference (points) | 95% interval | ahead / tied / behind | commit |",
-                  "|---|---|---|" + "---|" * (len(also) + len(ratios)) + "---|---|---|---|"]
+                  "|---|---|---|" + "---|" * (len(also) + len(ratios) + len(counts)) + "---|---|---|---|"]
         for i, s in enumerate(sides):
             vs = ("reference" if i == 0 else f"{100 * s['diff']:+.1f} ± {100 * s['diff_sd']:.1f}")
             ci = "" if i == 0 else f"[{100 * s['low']:+.1f}, {100 * s['high']:+.1f}]"
@@ -422,6 +463,7 @@ def to_markdown(result: dict) -> str:
             lines.append(f"| {s['label']} | {len(s['seeds'])} | {_cell(s['mean'], s['sd'])} | "
                          + "".join(f"{_cell(*s['also'][k])} | " for k in also)
                          + "".join(f"{_ratio_cell(s['ratios'][k])} | " for k in ratios)
+                         + "".join(f"{_count_cell(s['counts'][c])} | " for c in counts)
                          + f"{vs} | {ci} | {wins} | {', '.join(s['commits']) or '-'} |")
         columns = [(s, None) for s in sides] + [(s, k) for k in also for s in sides]
         lines += ["", f"Per seed ({metric}{', then ' + ', '.join(also) if also else ''}):", "",
