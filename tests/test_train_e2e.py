@@ -554,3 +554,12 @@ def test_patience_stops_after_epochs_without_a_better_validation(cache, tmp_path
 def test_patience_must_be_at_least_one(cache, tmp_path):
     with pytest.raises(ValueError, match=r"patience=0: must be >= 1"):
         train(tiny(cache, patience=0), tmp_path)
+
+
+def test_patience_waits_for_the_last_training_stage(cache, tmp_path, monkeypatch):
+    """ViewGCN, stages [3, 2], patience 1: epochs 2-3 of the single-view stage do not improve, yet it
+    runs whole; the whole-network stage restarts model selection (0.3 at epoch 4), then epoch 5 (0.2)
+    exhausts the patience with no epoch left: 5 epochs trained, best from stage 2."""
+    _scripted_validation(monkeypatch, [0.5, 0.1, 0.1, 0.3, 0.2])
+    m = train(tiny(cache, epochs=5, patience=1, **{"mvnet.name": "viewgcn", "mvnet.stages": [3, 2]}), tmp_path)
+    assert (m["epochs_trained"], m["stopped_early"], m["best_epoch"], m["best_val_acc"]) == (5, False, 4, 0.3)

@@ -363,6 +363,13 @@ def patience_spent(patience: int | None, epoch: int, best_epoch: int) -> bool:
     return patience is not None and epoch - 1 - best_epoch >= patience
 
 
+def last_stage(cfg: TrainConfig, epoch: int) -> bool:
+    """Whether 0-based ``epoch`` lies in the run's last training stage (the multi-view net's
+    ``stage_span``: ViewGCN's single-view stage is followed by the whole network's; one stage else)."""
+    first, length = cfg.mvnet.stage_span(epoch, cfg.epochs)
+    return first + length == cfg.epochs
+
+
 def write_results(run_dir: Path, metrics: dict) -> Path:
     """``metrics.json``, ``confusion.json`` and ``confusion.png`` in ``run_dir``; returns metrics.json's path."""
     conf = {"classes": metrics["classes"], "rows": "true class", "columns": "predicted class",
@@ -554,7 +561,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
                 if restart:
                     best_acc, best_epoch = -1.0, -1
                     say(run_dir, restart)
-                elif patience_spent(cfg.patience, epoch, best_epoch):  # (a resumed run that stopped stops again)
+                elif patience_spent(cfg.patience, epoch, best_epoch) and last_stage(cfg, epoch):
+                    # (a resumed run that stopped stops again)
                     say(run_dir, f"stopped after epoch {epoch}/{cfg.epochs}: validation accuracy has not improved for "
                                  f"{epoch - 1 - best_epoch} epochs (patience={cfg.patience}; best {best_acc:.4f} at "
                                  f"epoch {best_epoch + 1})")
