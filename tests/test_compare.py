@@ -276,3 +276,17 @@ def test_count_of_a_metric_a_run_lacks_names_it(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main([str(tmp_path / "f"), str(tmp_path / "l"), "--count", "test_nothing>=1"])
     assert e.value.code == 2 and "no number under 'test_nothing'" in capsys.readouterr().err
+
+
+def test_best_val_detail_seen_is_read_at_the_best_epoch(tmp_path, capsys):
+    """A derived number: the validation views' detail share at the run's best epoch (for --count on validation)."""
+    for s, (best, seen) in enumerate([(2, [0.1, 0.9, 0.2]), (3, [0.8, 0.7, 0.3])]):
+        for side, sel in (("a", "spherical"), ("b", "poi")):
+            d = _run(tmp_path / side, f"s{s}", 0.5, seed=s, selector=sel)
+            m = json.loads((d / "metrics.json").read_text())
+            m.update(best_epoch=best, history=[{"val_detail_seen": x} for x in seen])
+            (d / "metrics.json").write_text(json.dumps(m))
+    main([str(tmp_path / "a"), str(tmp_path / "b"), "--also", "best_val_detail_seen", "--count", "best_val_detail_seen>=0.5"])
+    out = capsys.readouterr().out
+    assert "| 0 | 0.5000 | 0.5000 | 0.9000 | 0.9000 |" in out and "| 1 | 0.5000 | 0.5000 | 0.3000 | 0.3000 |" in out
+    assert "| 1 of 2 [" in out

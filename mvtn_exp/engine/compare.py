@@ -331,7 +331,19 @@ def mean_sd(x: list[float]) -> tuple[float, float]:
 
 
 # numbers derived from what older runs' metrics.json hold
-DERIVED = {"train_wall_seconds": lambda m: sum(m["epoch_seconds"]) if isinstance(m.get("epoch_seconds"), list) else None}
+def _at_best_epoch(key: str):
+    """A validation number of the run's best epoch (``history[best_epoch - 1][key]``), e.g.
+    ``val_detail_seen``: whether the views of the selected model found the detail, on validation."""
+    def read(m: dict):
+        history, best = m.get("history"), m.get("best_epoch")
+        if not isinstance(history, list) or not isinstance(best, int) or not 1 <= best <= len(history):
+            return None
+        return history[best - 1].get(key)
+    return read
+
+
+DERIVED = {"train_wall_seconds": lambda m: sum(m["epoch_seconds"]) if isinstance(m.get("epoch_seconds"), list) else None,
+           "best_val_detail_seen": _at_best_epoch("val_detail_seen")}
 
 
 def _value(run: Run, metric: str) -> float:
