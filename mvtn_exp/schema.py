@@ -219,8 +219,8 @@ class TrainConfig:
     ``views``: M; ``image_size``: rendered H = W (sets ``renderer.image_size``); ``patience``: stop
     once this many epochs in a row have not raised the best validation accuracy (null: train all
     ``epochs``; the learning-rate schedule still spans ``epochs``, and ``best.pt`` is tested as
-    always); ``seed``: the
-    training seed (init, order, augmentation); ``ckpt_path``: resume from this checkpoint;
+    always); ``seed``: the training seed (init, order, augmentation); ``ckpt_path``: resume from
+    this checkpoint;
     ``threads``: torch's CPU threads for this process (null: torch's default, or under the joblib
     launcher the cores divided by the jobs that run at once); ``precision``: fp32, or autocast of
     the multi-view network C in bf16 or fp16 (CUDA only; G and the renderer stay float32:

@@ -28,11 +28,10 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
-from pathlib import Path
-
 import operator
 import re
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import yaml
 from scipy import stats
@@ -317,9 +316,8 @@ def wilson(k: int, n: int) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
-def count(values: list[float], condition: str) -> dict:
-    """How many ``values`` meet ``condition`` (``parse_count``), of how many, with the Wilson interval."""
-    _, op, bound = parse_count(condition)
+def count(values: list[float], op: str, bound: float) -> dict:
+    """How many ``values`` meet ``value op bound`` (``parse_count``), of how many, with the Wilson interval."""
     k = sum(COMPARISONS[op](v, bound) for v in values)
     low, high = wilson(k, len(values))
     return {"k": k, "n": len(values), "low": low, "high": high}
@@ -400,7 +398,7 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
     """The comparison as a dict (what ``compare.json`` holds); see the module docstring. ``ratios``:
     metrics (times, costs) also given as each side's paired ratio to the reference (``ratio``);
     ``counts``: conditions (``'METRIC>=VALUE'``) counted over each side's seeds (``count``)."""
-    conditions = {c: parse_count(c)[0] for c in counts}
+    conditions = {c: parse_count(c) for c in counts}  # text -> (metric, operator, bound)
     result = {"metric": metric, "interval": "95% paired t (Student's t, n - 1 df, on per-seed differences)",
               "group": group, "groups": [], "ratios": list(ratios), "counts": list(counts),
               "not_finished": [{"path": str(r.path), "status": r.status, "seed": r.seed, "error": r.error}
@@ -433,7 +431,8 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
                          ratios={k: None if side is ref else ratio([_value(ref.runs[s], k) for s in seeds],
                                                                    [_value(side.runs[s], k) for s in seeds])
                                  for k in ratios},
-                         counts={c: count([_value(side.runs[s], m) for s in seeds], c) for c, m in conditions.items()})
+                         counts={c: count([_value(side.runs[s], m) for s in seeds], op, bound)
+                                 for c, (m, op, bound) in conditions.items()})
             rows.append(entry)
         result["groups"].append({"group": g, "sides": rows})
     return result
