@@ -290,3 +290,23 @@ def test_best_val_detail_seen_is_read_at_the_best_epoch(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| 0 | 0.5000 | 0.5000 | 0.9000 | 0.9000 |" in out and "| 1 | 0.5000 | 0.5000 | 0.3000 | 0.3000 |" in out
     assert "| 1 of 2 [" in out
+
+
+def test_keys_of_another_option_are_not_filled_into_a_fixed_selectors_record(tmp_path, capsys):
+    """A fixed selector's schema has no learning rate: pairing its runs with learned ones (whose
+    records hold ``selector.lr``) neither fills the learned default into the fixed runs nor lists
+    the key as added after them; a key the fixed schema has and an old fixed record lacks is."""
+    for s in range(3):
+        d = _run(tmp_path / "f", f"s{s}", 0.2, seed=s, selector="spherical")
+        m = json.loads((d / "metrics.json").read_text())
+        m["config"]["selector"] = {"name": "spherical", "distance": 2.2}  # before `canonical` existed
+        (d / "metrics.json").write_text(json.dumps(m))
+        d = _run(tmp_path / "l", f"s{s}", 0.4, seed=s, selector="poi")
+        m = json.loads((d / "metrics.json").read_text())
+        m["config"]["selector"] = {"name": "poi", "lr": 0.01, "distance": 2.2, "canonical": "none"}
+        (d / "metrics.json").write_text(json.dumps(m))
+    result = compare(find_runs([tmp_path / "f", tmp_path / "l"]))
+    assert result["filled"] == {"selector.canonical": 3}
+    assert result["groups"][0]["sides"][1]["differs_in"] == ["selector.lr", "selector.name"]
+    main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c")])
+    assert "read as the current default: selector.canonical (3 runs)" in capsys.readouterr().out

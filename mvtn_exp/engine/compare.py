@@ -123,7 +123,8 @@ _DEFAULTS: dict = {}
 
 def current_defaults(settings: dict) -> dict:
     """The current code's default of every dotted key of a run with ``settings``'s options (the
-    top-level ``TrainConfig`` fields, and each option kind's schema for the option it names)."""
+    top-level ``TrainConfig`` fields, and each option kind's schema for the option it names: only
+    that schema's keys, not those of the kind's default option, which a fixed selector lacks)."""
     from omegaconf import OmegaConf
 
     from ..options import OPTIONS
@@ -137,6 +138,7 @@ def current_defaults(settings: dict) -> dict:
                 schema = OPTIONS[kind].schema(str(name))
             except ValueError:  # an option this code no longer has: nothing to fill from
                 continue
+            out = {k: v for k, v in out.items() if not k.startswith(f"{kind}.")}
             out.update(flatten(OmegaConf.to_container(OmegaConf.structured(schema)), kind))
         _DEFAULTS[names] = out
     return _DEFAULTS[names]
