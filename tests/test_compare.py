@@ -26,6 +26,13 @@ def _run(folder, name, acc, val=0.5, commit="abc1234def", **cfg):
     return d
 
 
+def _set_config(d, **sections):
+    """Replace whole sections of the stored config of the run in ``d`` (e.g. an older record)."""
+    m = json.loads((d / "metrics.json").read_text())
+    m["config"].update(sections)
+    (d / "metrics.json").write_text(json.dumps(m))
+
+
 FIXED = {0: 0.50, 1: 0.60, 2: 0.55, 3: 0.40}
 LEARNED = {0: 0.70, 1: 0.65, 2: 0.75, 3: 0.30}
 
@@ -221,10 +228,8 @@ def test_a_key_added_after_a_run_reads_as_its_current_default(tmp_path, capsys):
     newer runs that have false (one side, the filled key listed), not with runs that have true."""
     def run(folder, name, acc, seed, compile_):
         d = _run(folder, name, acc, seed=seed, selector="poi")
-        m = json.loads((d / "metrics.json").read_text())
         if compile_ is not None:
-            m["config"]["renderer"] = {"compile": compile_}
-        (d / "metrics.json").write_text(json.dumps(m))
+            _set_config(d, renderer={"compile": compile_})
 
     for s in range(3):
         run(tmp_path / "old", f"s{s}", 0.5, s, None)  # before the key existed
@@ -297,14 +302,10 @@ def test_keys_of_another_option_are_not_filled_into_a_fixed_selectors_record(tmp
     records hold ``selector.lr``) neither fills the learned default into the fixed runs nor lists
     the key as added after them; a key the fixed schema has and an old fixed record lacks is."""
     for s in range(3):
-        d = _run(tmp_path / "f", f"s{s}", 0.2, seed=s, selector="spherical")
-        m = json.loads((d / "metrics.json").read_text())
-        m["config"]["selector"] = {"name": "spherical", "distance": 2.2}  # before `canonical` existed
-        (d / "metrics.json").write_text(json.dumps(m))
-        d = _run(tmp_path / "l", f"s{s}", 0.4, seed=s, selector="poi")
-        m = json.loads((d / "metrics.json").read_text())
-        m["config"]["selector"] = {"name": "poi", "lr": 0.01, "distance": 2.2, "canonical": "none"}
-        (d / "metrics.json").write_text(json.dumps(m))
+        _set_config(_run(tmp_path / "f", f"s{s}", 0.2, seed=s),
+                    selector={"name": "spherical", "distance": 2.2})  # before `canonical` existed
+        _set_config(_run(tmp_path / "l", f"s{s}", 0.4, seed=s),
+                    selector={"name": "poi", "lr": 0.01, "distance": 2.2, "canonical": "none"})
     result = compare(find_runs([tmp_path / "f", tmp_path / "l"]))
     assert result["filled"] == {"selector.canonical": 3}
     assert result["groups"][0]["sides"][1]["differs_in"] == ["selector.lr", "selector.name"]
