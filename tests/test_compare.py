@@ -8,7 +8,7 @@ import pytest
 from scipy import stats
 
 from mvtn_exp.cli.compare import main, parse_seeds
-from mvtn_exp.engine.compare import CompareError, compare, find_runs
+from mvtn_exp.engine.compare import CompareError, _letter, compare, find_runs
 
 
 def _config(selector="spherical", views=1, seed=0, dataset_seed=0, epochs=20, threads=1, patience=None):
@@ -63,6 +63,9 @@ def test_paired_t_interval_and_wins_match_scipy(tmp_path, capsys):
     assert side["low"] == pytest.approx(ci[0]) and side["high"] == pytest.approx(ci[1])
     assert side["also_values"]["test_detail_seen"] == [LEARNED[s] / 2 for s in range(4)]
     assert "| 3 | 0.4000 | 0.3000 | 0.2000 | 0.1500 |" in out  # per seed: the metric, then --also, per side
+    # the per-seed header names each side by a letter, the legend above it gives the full label once
+    assert "| seed | A | B | A test_detail_seen | B test_detail_seen |" in out
+    assert "A: selector.name=spherical; B: selector.name=poi):" in out
     assert (tmp_path / "c" / "compare.md").read_text().startswith("# Comparison")
 
 
@@ -311,3 +314,9 @@ def test_keys_of_another_option_are_not_filled_into_a_fixed_selectors_record(tmp
     assert result["groups"][0]["sides"][1]["differs_in"] == ["selector.lr", "selector.name"]
     main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c")])
     assert "read as the current default: selector.canonical (3 runs)" in capsys.readouterr().out
+
+
+def test_side_letters_run_past_z_without_repeating():
+    names = [_letter(i) for i in range(26 * 27 + 1)]
+    assert names[:3] == ["A", "B", "C"] and names[25:28] == ["Z", "AA", "AB"] and names[-1] == "AAA"
+    assert len(set(names)) == len(names)

@@ -452,6 +452,11 @@ def _count_cell(c: dict) -> str:
     return f"{c['k']} of {c['n']} [{c['low']:.2f}, {c['high']:.2f}]"
 
 
+def _letter(i: int) -> str:
+    """The per-seed table's short name of side ``i`` (0-based): A, B, ..., Z, AA, AB, ..."""
+    return ("" if i < 26 else _letter(i // 26 - 1)) + chr(ord("A") + i % 26)
+
+
 def to_markdown(result: dict) -> str:
     """``compare.md``: per group, the per-seed table and the summary table."""
     metric = result["metric"]
@@ -479,8 +484,10 @@ def to_markdown(result: dict) -> str:
                          + "".join(f"{_count_cell(s['counts'][c])} | " for c in counts)
                          + f"{vs} | {ci} | {wins} | {', '.join(s['commits']) or '-'} |")
         columns = [(s, None) for s in sides] + [(s, k) for k in also for s in sides]
-        lines += ["", f"Per seed ({metric}{', then ' + ', '.join(also) if also else ''}):", "",
-                  "| seed | " + " | ".join(s["label"] + (f" {k}" if k else "") for s, k in columns) + " |",
+        short = {id(s): _letter(i) for i, s in enumerate(sides)}
+        lines += ["", f"Per seed ({metric}{', then ' + ', '.join(also) if also else ''}; "
+                  + "; ".join(f"{short[id(s)]}: {s['label']}" for s in sides) + "):", "",
+                  "| seed | " + " | ".join(short[id(s)] + (f" {k}" if k else "") for s, k in columns) + " |",
                   "|---|" + "---|" * len(columns)]
         for seed in seeds:
             cells = [(f"{(s['also_values'][k] if k else s['values'])[s['seeds'].index(seed)]:.4f}"
