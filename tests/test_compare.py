@@ -17,12 +17,12 @@ def _config(selector="spherical", views=1, seed=0, dataset_seed=0, epochs=20, th
             "selector": {"name": selector}, "paths": {"output_dir": f"/o{seed}"}}
 
 
-def _run(folder, name, acc, val=0.5, commit="abc1234def", **cfg):
+def _run(folder, name, acc, val=0.5, commit="abc1234def", cpu=None, **cfg):
     d = folder / name
     d.mkdir(parents=True)
+    prov = {"commit": commit, "dirty": False, "device": "cpu", **({"cpu": cpu, "cpu_capability": "AVX2"} if cpu else {})}
     (d / "metrics.json").write_text(json.dumps({"test_acc": acc, "best_val_acc": val, "test_detail_seen": acc / 2,
-                                                "config": _config(**cfg),
-                                                "provenance": {"commit": commit, "dirty": False}}))
+                                                "config": _config(**cfg), "provenance": prov}))
     return d
 
 
@@ -320,3 +320,32 @@ def test_side_letters_run_past_z_without_repeating():
     names = [_letter(i) for i in range(26 * 27 + 1)]
     assert names[:3] == ["A", "B", "C"] and names[25:28] == ["Z", "AA", "AB"] and names[-1] == "AAA"
     assert len(set(names)) == len(names)
+
+
+def test_runs_from_more_than_one_machine_are_named_with_their_counts(tmp_path, capsys):
+    for s, a in FIXED.items():
+        _run(tmp_path / "f", f"s{s}", a, seed=s, cpu="Intel Xeon" if s < 3 else "AMD EPYC")
+    for s, a in LEARNED.items():
+        _run(tmp_path / "l", f"s{s}", a, seed=s, selector="poi", cpu="AMD EPYC")
+    main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c")])
+    out = capsys.readouterr().out
+    assert "more than one machine" in out and "AMD EPYC (AVX2) (5 runs), Intel Xeon (AVX2) (3 runs)" in out
+    saved = json.loads((tmp_path / "c" / "compare.json").read_text())
+    assert saved["machines"] == {"AMD EPYC (AVX2)": 5, "Intel Xeon (AVX2)": 3}
+
+
+def test_runs_from_one_machine_or_older_records_say_nothing_of_machines(tmp_path, capsys):
+    _two_sides(tmp_path)  # records without the CPU: one "not recorded" machine
+    main([str(tmp_path / "f"), str(tmp_path / "l"), "--out", str(tmp_path / "c")])
+    assert "more than one machine" not in capsys.readouterr().out
+    assert json.loads((tmp_path / "c" / "compare.json").read_text())["machines"] == {"not recorded": 8}
+
+
+def test_a_record_names_the_cpu_and_its_capability_and_a_cuda_run_its_gpu():
+    from mvtn_exp.engine.provenance import machine, provenance
+
+    prov = provenance("cpu")
+    assert prov["cpu"] and prov["cpu_capability"] not in ("", "None")
+    assert machine(prov) == f"{prov['cpu']} ({prov['cpu_capability']})"
+    assert machine({"device": "cuda:0", "device_name": "NVIDIA H100", "cpu": "AMD EPYC"}) == "NVIDIA H100"
+    assert machine({"device": "cpu", "device_name": "x86_64"}) is None  # made before the CPU was kept

@@ -23,6 +23,9 @@ Keys that say where or how a run ran (``RUN_LOCAL``: device, threads, paths, ...
 difference. A key that another run's record has and an older run's lacks (the key was added after
 the older run) is read as the key's default in the current code (``fill_added_keys``: adding a key
 keeps the old behaviour as its default), and ``compare.md`` lists every key so filled.
+Float rounding differs between machines (CPU model and torch's CPU capability, or GPU), so one
+seed's run repeats to the digit only on the machine that made it: ``compare.md`` names the
+machines when the compared runs come from more than one.
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ from pathlib import Path
 import yaml
 from scipy import stats
 
+from .provenance import machine
 from .sweep import STATUS_FILE
 
 RUN_LOCAL = ("seed", "device", "ckpt_path", "threads", "overwrite", "logger", "paths", "dataset.root", "dataset.cache_dir",
@@ -59,6 +63,7 @@ class Run:
     metrics: dict = field(default_factory=dict)
     commit: str | None = None
     error: str = ""
+    machine: str | None = None  # the hardware behind its float rounding (None: not recorded)
     filled: list = field(default_factory=list)  # keys its record lacked, read as today's defaults
 
 
@@ -99,7 +104,7 @@ def _read_run(path: Path) -> Run:
     prov = metrics.get("provenance") or {}
     commit = (prov["commit"][:7] + ("+dirty" if prov.get("dirty") else "")) if prov.get("commit") else None
     return Run(path, status, seed=flat.get("seed"), settings={k: v for k, v in flat.items() if not _local(k)},
-               metrics=metrics, commit=commit, error=error)
+               metrics=metrics, commit=commit, error=error, machine=machine(prov))
 
 
 def find_runs(folders) -> list[Run]:
@@ -408,6 +413,7 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
     fill_added_keys(runs)
     filled = sorted({k for r in runs for k in r.filled})
     result["filled"] = {k: sum(k in r.filled for r in runs) for k in filled}
+    machines: dict[str, int] = {}
     for g, sides in make_sides(runs, where, group, reference).items():
         group_text = f" at {group}={_show(g)}" if group else ""
         if len(sides) < 2:
@@ -436,7 +442,10 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
                          counts={c: count([_value(side.runs[s], m) for s in seeds], op, bound)
                                  for c, (m, op, bound) in conditions.items()})
             rows.append(entry)
+            for r in side.runs.values():
+                machines[r.machine or "not recorded"] = machines.get(r.machine or "not recorded", 0) + 1
         result["groups"].append({"group": g, "sides": rows})
+    result["machines"] = dict(sorted(machines.items()))
     return result
 
 
@@ -503,6 +512,10 @@ def to_markdown(result: dict) -> str:
     if result.get("filled"):
         lines += ["Keys some runs' records lack (made before the key existed), read as the current default: "
                   + ", ".join(f"{k} ({n} run{'s' if n > 1 else ''})" for k, n in result["filled"].items()), ""]
+    if len(result.get("machines", {})) > 1:
+        lines += ["Runs made on more than one machine (float rounding differs between them, so a seed's run "
+                  "repeats to the digit only on its own): " + ", ".join(f"{m} ({n} run{'s' if n > 1 else ''})"
+                                                                       for m, n in result["machines"].items()), ""]
     if result["not_finished"]:
         lines += ["Runs not finished (left out):", ""]
         lines += [f"- {r['path']}: {r['status']}" + (f": {r['error']}" if r["error"] else "") for r in result["not_finished"]]

@@ -40,11 +40,40 @@ def git_state() -> dict:
     return {"commit": commit, "dirty": None if status is None else bool(status)}
 
 
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo`` on Linux; else what ``platform`` knows)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name") and ":" in line:
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def cpu_capability() -> str:
+    """The vector instruction set torch's CPU kernels dispatch to (``AVX2``, ``AVX512``, ...): with the
+    CPU model, what decides the float rounding of a CPU run."""
+    try:
+        return str(torch.backends.cpu.get_cpu_capability())
+    except (AttributeError, RuntimeError):
+        return "unknown"
+
+
+def machine(prov: dict) -> str | None:
+    """One string naming the hardware a run's float rounding came from: the GPU for a CUDA run, the
+    CPU model and torch's CPU capability else; None for records made before these were kept."""
+    if str(prov.get("device", "")).startswith("cuda"):
+        return prov.get("device_name")
+    return f"{prov['cpu']} ({prov.get('cpu_capability', 'unknown')})" if prov.get("cpu") else None
+
+
 def provenance(device: str = "cpu") -> dict:
     """Everything needed to say which code, libraries and machine produced a run."""
     dev = torch.device(device)
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" and torch.cuda.is_available() else platform.processor() or platform.machine()
     return {"package": "mvtn-exp", "version": package_version(), **git_state(), "torch": str(torch.__version__),
             "cuda": None if torch.version.cuda is None else str(torch.version.cuda), "python": platform.python_version(), "device": str(dev), "device_name": name,
+            "cpu": cpu_name(), "cpu_capability": cpu_capability(),
             "threads": torch.get_num_threads(), "host": socket.gethostname(), "command": [Path(sys.argv[0]).name, *sys.argv[1:]],
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
