@@ -33,6 +33,7 @@ import json
 import math
 import operator
 import re
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -413,7 +414,7 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
     fill_added_keys(runs)
     filled = sorted({k for r in runs for k in r.filled})
     result["filled"] = {k: sum(k in r.filled for r in runs) for k in filled}
-    machines: dict[str, int] = {}
+    machines: Counter = Counter()
     for g, sides in make_sides(runs, where, group, reference).items():
         group_text = f" at {group}={_show(g)}" if group else ""
         if len(sides) < 2:
@@ -442,8 +443,7 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
                          counts={c: count([_value(side.runs[s], m) for s in seeds], op, bound)
                                  for c, (m, op, bound) in conditions.items()})
             rows.append(entry)
-            for r in side.runs.values():
-                machines[r.machine or "not recorded"] = machines.get(r.machine or "not recorded", 0) + 1
+            machines.update(r.machine or "not recorded" for r in side.runs.values())
         result["groups"].append({"group": g, "sides": rows})
     result["machines"] = dict(sorted(machines.items()))
     return result
@@ -492,15 +492,14 @@ def to_markdown(result: dict) -> str:
                          + "".join(f"{_ratio_cell(s['ratios'][k])} | " for k in ratios)
                          + "".join(f"{_count_cell(s['counts'][c])} | " for c in counts)
                          + f"{vs} | {ci} | {wins} | {', '.join(s['commits']) or '-'} |")
-        columns = [(s, None) for s in sides] + [(s, k) for k in also for s in sides]
-        short = {id(s): _letter(i) for i, s in enumerate(sides)}
+        columns = [(i, None) for i in range(len(sides))] + [(i, k) for k in also for i in range(len(sides))]
         lines += ["", f"Per seed ({metric}{', then ' + ', '.join(also) if also else ''}; "
-                  + "; ".join(f"{short[id(s)]}: {s['label']}" for s in sides) + "):", "",
-                  "| seed | " + " | ".join(short[id(s)] + (f" {k}" if k else "") for s, k in columns) + " |",
+                  + "; ".join(f"{_letter(i)}: {s['label']}" for i, s in enumerate(sides)) + "):", "",
+                  "| seed | " + " | ".join(_letter(i) + (f" {k}" if k else "") for i, k in columns) + " |",
                   "|---|" + "---|" * len(columns)]
         for seed in seeds:
             cells = [(f"{(s['also_values'][k] if k else s['values'])[s['seeds'].index(seed)]:.4f}"
-                      if seed in s["seeds"] else "-") for s, k in columns]
+                      if seed in s["seeds"] else "-") for s, k in ((sides[i], k) for i, k in columns)]
             lines.append(f"| {seed} | " + " | ".join(cells) + " |")
         for s in sides[1:]:
             keys = _by_option(s["differs_in"])
