@@ -117,3 +117,21 @@ def test_eval_scope_resumes_exactly(tmp_path):
     resumed = train(tiny(cache, epochs=2, ckpt_path=str(tmp_path / "a" / "last.pt"), **kw), tmp_path / "b")
     assert [h["train_loss"] for h in resumed["history"]] == [h["train_loss"] for h in full["history"]]
     assert resumed["confusion_matrix"] == full["confusion_matrix"]
+
+
+def test_fixed_views_re_estimate_too(tmp_path):
+    """The fixed baselines get the same re-estimation as learned views (a baseline is not weakened
+    by stale running averages): training is bit-identical to a run without, the checkpoints carry
+    the re-estimated statistics beside training's own, and validation reads the re-estimated ones."""
+    cache = str(tmp_path / "cache")
+    runs = {}
+    for n in (0, 2):
+        m = train(tiny(cache, epochs=2, selector={"name": "spherical", "bn_recalibrate": n}), tmp_path / str(n))
+        runs[n] = (m, checkpoint.load(tmp_path / str(n) / "last.pt"))
+    (m0, s0), (m2, s2) = runs[0], runs[2]
+    assert [h["train_loss"] for h in m0["history"]] == [h["train_loss"] for h in m2["history"]]
+    assert "train_bn" not in s0 and set(s2["train_bn"])
+    assert all(torch.equal(s0["model"][k], v) for k, v in s2["train_bn"].items())
+    means = [k for k in s2["train_bn"] if k.endswith("running_mean")]
+    assert means and all(not torch.equal(s2["model"][k], s2["train_bn"][k]) for k in means)
+    assert [h["val_loss"] for h in m0["history"]] != [h["val_loss"] for h in m2["history"]]

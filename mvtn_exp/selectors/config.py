@@ -27,6 +27,7 @@ if TYPE_CHECKING:  # pragma: no cover
 REGISTRY = OPTIONS["selector"]  # every selector option, by name (filled by the selector modules)
 register = REGISTRY.register
 schema = REGISTRY.schema
+BN_SCOPES = ("all", "eval")  # what re-estimated BatchNorm statistics serve (engine/precise_bn.py)
 
 
 @dataclass
@@ -34,20 +35,29 @@ class SelectorConfig(OptionConfig):
     """Keys every selector has: ``name`` (the option; set it with ``selector=NAME``),
     ``distance``, the camera distance in world units (the shapes lie in the unit sphere), and
     ``canonical``: ``none`` (shapes as posed) or ``pca`` (each shape turned into its principal
-    frame before G and R see it, ``selectors/canonical.py``: the pose-canonicalised baseline)."""
+    frame before G and R see it, ``selectors/canonical.py``: the pose-canonicalised baseline).
+    ``bn_recalibrate``: before each validation C's BatchNorm statistics are re-estimated over this
+    many training batches on the selector's current views (0: the paper's running averages;
+    ``engine/precise_bn.py``), fixed views as learned ones; ``bn_recalibrate_scope``: ``eval``
+    (they serve validation, checkpoints and test; training keeps its own) or ``all``."""
 
     distance: float = 2.2
     canonical: str = "none"
+    bn_recalibrate: int = 0
+    bn_recalibrate_scope: str = "eval"
 
     kind = "selector"
 
     learned: ClassVar[bool] = False
-    training_keys: ClassVar[tuple] = ()
+    # keys that set how the run trains, not what the model is: they may change when a run is resumed
+    training_keys: ClassVar[tuple] = ("bn_recalibrate", "bn_recalibrate_scope")
 
     def validate(self) -> "SelectorConfig":
         super().validate()
         at_least("selector.distance", self.distance, 0.0, strict=True)
         one_of("selector.canonical", self.canonical, ("none", "pca"))
+        at_least("selector.bn_recalibrate", self.bn_recalibrate, 0)
+        one_of("selector.bn_recalibrate_scope", self.bn_recalibrate_scope, BN_SCOPES)
         return self
 
     def build(self, views: int, seed: int, point_encoder=None):
@@ -78,7 +88,6 @@ class SelectorConfig(OptionConfig):
 GRADIENTS = ("autograd", "smoothed", "search")  # how G gets its gradient (engine/view_gradient.py)
 LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
 WARMUP_VIEWS = ("u0", "random", "spherical", "canonical")
-BN_SCOPES = ("all", "eval")  # what re-estimated BatchNorm statistics serve (engine/precise_bn.py)
 
 
 @dataclass
@@ -112,10 +121,8 @@ class LearnedSelectorConfig(SelectorConfig):
     (``mean_c z_c - z_y``; needs ``grad=smoothed`` or ``search``). ``flip_explore``: for the first
     ``flip_epochs`` epochs each view is rendered from its antipode with this probability, and a
     view whose antipode had the lower loss turns round (0: off; ``selectors/polarity.py``).
-    ``bn_recalibrate``: before each validation C's BatchNorm statistics are re-estimated over this
-    many training batches on G's current views (0: the paper's running averages);
-    ``bn_recalibrate_scope``: ``eval`` (they serve validation, checkpoints and test; training keeps
-    its own) or ``all``.
+    ``bn_recalibrate`` / ``bn_recalibrate_scope`` (every selector's keys, ``SelectorConfig``) re-estimate
+    C's BatchNorm statistics on G's current views before each validation.
     """
 
     sphere: str = "equal_area"
@@ -142,8 +149,6 @@ class LearnedSelectorConfig(SelectorConfig):
     search_weight: float = 1.0
     flip_explore: float = 0.0
     flip_epochs: int = 10
-    bn_recalibrate: int = 0
-    bn_recalibrate_scope: str = "eval"
 
     learned: ClassVar[bool] = True
     # keys that set how G trains, not what the model is: they may change when a run is resumed
@@ -194,8 +199,6 @@ class LearnedSelectorConfig(SelectorConfig):
         if not 0.0 <= self.flip_explore < 1.0:
             raise ValueError(f"selector.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
         at_least("selector.flip_epochs", self.flip_epochs, 1)
-        at_least("selector.bn_recalibrate", self.bn_recalibrate, 0)
-        one_of("selector.bn_recalibrate_scope", self.bn_recalibrate_scope, BN_SCOPES)
         if self.from_ckpt and self.flip_explore > 0:
             raise ValueError("selector.from_ckpt with selector.flip_explore: a transferred G is frozen, its views are "
                              "not turned round")

@@ -80,10 +80,22 @@ class SelectorTraining:
         return []
 
     def before_validation(self, model, batches) -> Optional[dict]:
-        return None
+        """``bn_recalibrate > 0``: re-estimate C's BatchNorm statistics on the selector's current
+        views (fixed, or G's); with scope ``eval`` return training's own statistics
+        (``after_validation`` puts them back)."""
+        from ..engine import precise_bn
+
+        if not self.s.bn_recalibrate:
+            return None
+        state = precise_bn.running_statistics(model) if self.s.bn_recalibrate_scope == "eval" else None
+        precise_bn.recalibrate(model, batches(), self.s.bn_recalibrate)
+        return state
 
     def after_validation(self, model, state: Optional[dict]) -> None:
-        pass
+        from ..engine import precise_bn
+
+        if state is not None:
+            precise_bn.restore(model, state)
 
     def history(self, model) -> dict:
         return {}
@@ -94,8 +106,7 @@ class LearnedTraining(SelectorTraining):
     ``beta1``), its gradient clipped to ``clip``; with ``move_every`` k it moves in one epoch of
     every k only. For the first ``warmup_epochs`` epochs (and
     whenever the multi-view net holds the views) G is frozen and C trains on ``warmup_views``; from
-    ``stop_epoch`` on, or at learning rate 0, C trains on G's views without G's gradient.
-    ``bn_recalibrate``: C's BatchNorm statistics re-estimated before each validation."""
+    ``stop_epoch`` on, or at learning rate 0, C trains on G's views without G's gradient."""
 
     def __init__(self, cfg) -> None:
         super().__init__(cfg)
@@ -134,19 +145,3 @@ class LearnedTraining(SelectorTraining):
         with torch.set_grad_enabled(not self.frozen):
             return self.warmup_views(model, batch) if self.warm else model.select(batch)
 
-    def before_validation(self, model, batches) -> Optional[dict]:
-        """``bn_recalibrate > 0``: re-estimate C's BatchNorm statistics on G's current views; with
-        scope ``eval`` return training's own statistics (``after_validation`` puts them back)."""
-        from ..engine import precise_bn
-
-        if not self.s.bn_recalibrate:
-            return None
-        state = precise_bn.running_statistics(model) if self.s.bn_recalibrate_scope == "eval" else None
-        precise_bn.recalibrate(model, batches(), self.s.bn_recalibrate)
-        return state
-
-    def after_validation(self, model, state: Optional[dict]) -> None:
-        from ..engine import precise_bn
-
-        if state is not None:
-            precise_bn.restore(model, state)
