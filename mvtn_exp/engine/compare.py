@@ -466,6 +466,13 @@ def _letter(i: int) -> str:
     return ("" if i < 26 else _letter(i // 26 - 1)) + chr(ord("A") + i % 26)
 
 
+def _seed_cell(side: dict, also: str | None, seed: int) -> str:
+    """One seed's value of ``side``'s metric (``also``: None) or of an ``--also`` column; '-' if missing."""
+    if seed not in side["seeds"]:
+        return "-"
+    return f"{(side['also_values'][also] if also else side['values'])[side['seeds'].index(seed)]:.4f}"
+
+
 def to_markdown(result: dict) -> str:
     """``compare.md``: per group, the per-seed table and the summary table."""
     metric = result["metric"]
@@ -498,8 +505,7 @@ def to_markdown(result: dict) -> str:
                   "| seed | " + " | ".join(_letter(i) + (f" {k}" if k else "") for i, k in columns) + " |",
                   "|---|" + "---|" * len(columns)]
         for seed in seeds:
-            cells = [(f"{(s['also_values'][k] if k else s['values'])[s['seeds'].index(seed)]:.4f}"
-                      if seed in s["seeds"] else "-") for s, k in ((sides[i], k) for i, k in columns)]
+            cells = [_seed_cell(sides[i], k, seed) for i, k in columns]
             lines.append(f"| {seed} | " + " | ".join(cells) + " |")
         for s in sides[1:]:
             keys = _by_option(s["differs_in"])

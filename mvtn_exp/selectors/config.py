@@ -152,10 +152,11 @@ class LearnedSelectorConfig(SelectorConfig):
 
     learned: ClassVar[bool] = True
     # keys that set how G trains, not what the model is: they may change when a run is resumed
-    training_keys: ClassVar[tuple] = ("lr", "beta1", "clip", "stop_epoch", "move_every", "warmup_epochs", "warmup_views",
+    training_keys: ClassVar[tuple] = SelectorConfig.training_keys + (
+                                      "lr", "beta1", "clip", "stop_epoch", "move_every", "warmup_epochs", "warmup_views",
                                       "warmup_num_views", "warmup_elevation", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every", "train_jitter",
                                       "probe_batched", "search_views", "search_every", "search_weight",
-                                      "flip_epochs", "bn_recalibrate", "bn_recalibrate_scope", "race_epochs",
+                                      "flip_epochs", "race_epochs",
                                       "race_z", "race_batches", "race_mode", "race_probes", "cache")
 
     def validate(self) -> "LearnedSelectorConfig":
