@@ -67,7 +67,7 @@ def test_every_experiment_composes(name):
         assert cfg.selector.name == ("poi" if learned else "spherical")
         if learned:  # the recipe, from the selector's own defaults
             assert cfg.selector.grad == "smoothed" and cfg.selector.loss == "centered_logit"
-            assert cfg.selector.gain == 32.0 and cfg.selector.hypotheses == 4 and cfg.selector.race_epochs == 8
+            assert cfg.selector.gain == 32.0 and cfg.selector.hypotheses == 8 and cfg.selector.race_epochs == 8
             assert cfg.selector.antipodes and cfg.selector.race_mode == "pooled"
     elif name == "tradeoff_synthetic_views":  # the study's view-dependent half: the learned recipe, swept
         assert cfg.dataset.name == "synthetic_views" and cfg.selector.name == "poi" and cfg.epochs == 20

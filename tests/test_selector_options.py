@@ -54,14 +54,14 @@ def test_the_recipe_is_one_name_with_its_renderer(tmp_path):
         cfg = as_config(compose("train", overrides=["selector=poi", "views=1"]))
         soft = as_config(compose("train", overrides=["selector=poi", "renderer=soft"]))
     s = cfg.selector
-    assert (s.gain, s.hypotheses, s.race_epochs, s.race_mode, s.antipodes, s.lr) == (32.0, 4, 8, "pooled", True, 1e-2)
+    assert (s.gain, s.hypotheses, s.race_epochs, s.race_mode, s.antipodes, s.lr) == (32.0, 8, 8, "pooled", True, 1e-2)
     assert (s.grad, s.loss, s.bn_recalibrate) == ("smoothed", "centered_logit", 24)
     assert (cfg.renderer.mode, cfg.renderer.train_light, cfg.renderer.train_color) == ("hard", "camera", "white")
     assert soft.renderer.mode == "soft"  # the command line's renderer wins
 
 
 def test_the_recipe_with_one_set_of_views_is_one_line_away():
-    """The recipe races four hypotheses; one set of views is three keys, and a half-way line is
+    """The recipe races eight hypotheses; one set of views is three keys, and a half-way line is
     refused with the whole line to write."""
     from hydra import compose, initialize_config_module
 

@@ -309,16 +309,17 @@ class PoiRecipeConfig(PoiConfig):
     true-class logit at learning rate 1e-2, gain 32, C's BatchNorm statistics re-estimated over 24
     training batches before each validation; ``conf/selector/poi.yaml`` also picks the hard
     renderer with a camera light on white shapes (``renderer=hard_camera``; a ``renderer=`` on the
-    command line wins). Four hypotheses race for 8 epochs, pooled, two of them the others' views
+    command line wins). Eight hypotheses race for 8 epochs, pooled, four of them the others' views
     from the opposite side (``antipodes``): on validation of the tuning data (cup family, 10 seeds)
-    G found the detail in 9 seeds of 10 against 5 for one set of views (+22.0 points [+7.9, +36.1],
-    at 2.6 x its time; level on the decoys family), docs/results/finding-the-detail.md. One set of
-    views, the cheaper former default: ``selector.hypotheses=1 selector.race_epochs=0
-    selector.antipodes=false``."""
+    G found the detail in 10 seeds of 10 against 7 for four hypotheses (+22.8 points [+6.7, +38.9],
+    at 2.0 x their time; decoys family, G on 1,024 points: 10 against 4, +18.5 [+2.9, +34.2], at
+    1.4 x), docs/results/finding-the-detail.md. Four, the former default:
+    ``selector.hypotheses=4``; one set of views, the cheapest: ``selector.hypotheses=1
+    selector.race_epochs=0 selector.antipodes=false``."""
 
     name: str = "poi"
     gain: float = 32.0
-    hypotheses: int = 4
+    hypotheses: int = 8
     race_epochs: int = 8
     antipodes: bool = True
     race_mode: str = "pooled"
