@@ -199,6 +199,22 @@ def test_a_side_whose_every_run_failed_is_listed_and_the_rest_compared(tmp_path,
     assert sides[1]["diff"] == pytest.approx(sum(LEARNED[s] - FIXED[s] for s in FIXED) / 4)
 
 
+def test_a_side_still_running_is_named_when_only_the_other_has_finished(tmp_path, capsys):
+    for s in range(2):
+        _run(tmp_path / "f", f"s{s}", 0.5, seed=s)
+        d = tmp_path / "l" / f"s{s}"  # started (its config written), no metrics.json yet
+        (d / ".hydra").mkdir(parents=True)
+        (d / ".hydra" / "config.yaml").write_text(json.dumps(_config(seed=s, selector="poi")))
+    (tmp_path / "f" / "s9" / ".hydra").mkdir(parents=True)  # the finished side's own unfinished seed: not named
+    (tmp_path / "f" / "s9" / ".hydra" / "config.yaml").write_text(json.dumps(_config(seed=9)))
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "f"), str(tmp_path / "l")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("mvtn-compare: only one configuration with finished runs ('(defaults)' ...)")
+    assert f"2 run(s) of another configuration not finished ({tmp_path / 'l' / 's0'}: incomplete, ...)" in err
+
+
 def test_ratio_is_the_paired_geometric_mean_with_its_log_interval(tmp_path, capsys):
     """--ratio train_wall_seconds: side / reference per seed, geometric mean, t interval on the logs;
     older runs without the number have it from their epoch_seconds."""

@@ -401,6 +401,18 @@ def ratio(ref: list[float], side: list[float]) -> dict:
     return {"ratio": math.exp(m), "ratio_low": math.exp(m - half), "ratio_high": math.exp(m + half)}
 
 
+def _only_one(side: Side, runs: list[Run], group, g, group_text: str) -> str:
+    """The refusal when one configuration has finished runs; it names the runs of other
+    configurations that have not finished (a side still running or failed), if any."""
+    other = [r for r in runs if r.status != "ok" and r.settings is not None
+             and (not group or r.settings.get(group) == g)
+             and [k for k in differing(side.settings, r.settings) if k != group]]
+    waiting = (f"; {len(other)} run(s) of another configuration not finished ({other[0].path}: {other[0].status}"
+               + (", ..." if len(other) > 1 else "") + ")") if other else ""
+    return (f"only one configuration{group_text} with finished runs ('{side.label}' ...): nothing to compare{waiting} "
+            "(give the folders of both sides, or --where one condition per side)")
+
+
 def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, keys=(), also=(),
             reference: str | None = None, ratios=(), counts=()) -> dict:
     """The comparison as a dict (what ``compare.json`` holds); see the module docstring. ``ratios``:
@@ -418,8 +430,7 @@ def compare(runs: list[Run], metric: str = "test_acc", where=None, group=None, k
     for g, sides in make_sides(runs, where, group, reference).items():
         group_text = f" at {group}={_show(g)}" if group else ""
         if len(sides) < 2:
-            raise CompareError(f"only one configuration{group_text} ('{sides[0].label}' ...): nothing to compare "
-                               "(give the folders of both sides, or --where one condition per side)")
+            raise CompareError(_only_one(sides[0], runs, group, g, group_text))
         ref, rows = sides[0], []
         for side in sides:
             entry = {"label": side.label, "settings": {k: side.settings.get(k) for k in differing(ref.settings, side.settings)},
