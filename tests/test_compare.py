@@ -316,6 +316,29 @@ def test_best_val_detail_seen_is_read_at_the_best_epoch(tmp_path, capsys):
     assert "| 1 of 2 [" in out
 
 
+def test_race_led_counts_races_ended_by_a_clear_lead(tmp_path, capsys):
+    """A derived number: 1 where the race's last recorded end is a lead, 0 at its cap or batch
+    budget; a run without a recorded race end has none, and --count names the metric."""
+    ends = {"a": ["lead", "cap", "batches"], "b": ["lead", "lead", "cap"]}
+    for side, sel in (("a", "spherical"), ("b", "poi")):
+        for s, end in enumerate(ends[side]):
+            d = _run(tmp_path / side, f"s{s}", 0.5, seed=s, selector=sel)
+            m = json.loads((d / "metrics.json").read_text())
+            m["history"] = [{"race_end": None}, {"race_end": end}, {"race_end": None}]
+            (d / "metrics.json").write_text(json.dumps(m))
+    main([str(tmp_path / "a"), str(tmp_path / "b"), "--count", "race_led>=1", "--out", str(tmp_path / "c")])
+    sides = json.loads((tmp_path / "c" / "compare.json").read_text())["groups"][0]["sides"]
+    assert [x["counts"]["race_led>=1"]["k"] for x in sides] == [1, 2]
+    capsys.readouterr()
+    for d in (tmp_path / "b").iterdir():  # records made before race_end was kept
+        m = json.loads((d / "metrics.json").read_text())
+        m["history"] = [{"hypothesis_active": 0}]
+        (d / "metrics.json").write_text(json.dumps(m))
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "a"), str(tmp_path / "b"), "--count", "race_led>=1"])
+    assert e.value.code == 2 and "no number under 'race_led'" in capsys.readouterr().err
+
+
 def test_keys_of_another_option_are_not_filled_into_a_fixed_selectors_record(tmp_path, capsys):
     """A fixed selector's schema has no learning rate: pairing its runs with learned ones (whose
     records hold ``selector.lr``) neither fills the learned default into the fixed runs nor lists

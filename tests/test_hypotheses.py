@@ -192,6 +192,18 @@ def test_a_clear_lead_ends_exploration_early(tmp_path):
     losses = [h["hypothesis_losses"] for h in run["history"]]
     assert len(losses[0]) == 2 and losses[1] is None and losses[2] is None
     assert "a clear lead: kept from now on" in (tmp_path / "run" / "train.log").read_text()
+    assert [h["race_end"] for h in run["history"]] == ["lead", None, None]
+
+
+def test_a_race_without_a_clear_lead_ends_at_its_cap_and_says_so(tmp_path):
+    """race_z=None: no lead is ever clear, so both epochs of the race render both hypotheses and
+    the second ends it at its cap, recorded as such (what mvtn-compare's race_led reads)."""
+    run = train(tiny(str(tmp_path / "cache"), epochs=3, **{**HYP, "selector.race_epochs": 2, "selector.race_z": None}),
+                tmp_path / "run")
+    assert [h["race_end"] for h in run["history"]] == [None, "cap", None]
+    assert [h["hypothesis_losses"] is not None for h in run["history"]] == [True, True, False]
+    assert "epoch 2: hypotheses' mean" in (log := (tmp_path / "run" / "train.log").read_text())
+    assert "(the race's last epoch, no clear lead: kept from now on)" in log
 
 
 def test_a_race_on_a_few_batches_is_decided_within_its_epoch(tmp_path, monkeypatch):
@@ -219,6 +231,7 @@ def test_a_race_on_a_few_batches_is_decided_within_its_epoch(tmp_path, monkeypat
     assert first["hypothesis_active"] == second["hypothesis_active"] == min(range(2), key=lambda h: first["hypothesis_losses"][h])
     log = (tmp_path / "run" / "train.log").read_text()
     assert "(after 2 batches: kept from now on)" in log
+    assert first["race_end"] == "batches" and second["race_end"] is None
     M = 2  # tiny's views
     assert seen[:2] == [2 * M, 2 * M] and set(seen[2:]) == {M} and len(seen) > 4
     train(tiny(cache, epochs=1, **cfg), tmp_path / "a")

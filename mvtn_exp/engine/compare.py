@@ -348,8 +348,17 @@ def _at_best_epoch(key: str):
     return read
 
 
+def _race_led(m: dict):
+    """1 where the raced hypotheses' race ended by a clear lead, 0 where it ran to its cap (or its
+    batch budget) and the kept hypothesis led by less; None for runs without a race, or made
+    before the history recorded how it ended (``race_end``)."""
+    ends = [h.get("race_end") for h in m.get("history") or [] if isinstance(h, dict) and h.get("race_end")]
+    return None if not ends else float(ends[-1] == "lead")
+
+
 DERIVED = {"train_wall_seconds": lambda m: sum(m["epoch_seconds"]) if isinstance(m.get("epoch_seconds"), list) else None,
-           "best_val_detail_seen": _at_best_epoch("val_detail_seen")}
+           "best_val_detail_seen": _at_best_epoch("val_detail_seen"),
+           "race_led": _race_led}
 
 
 def _value(run: Run, metric: str) -> float:

@@ -80,19 +80,22 @@ class ProbeTraining(LearnedTraining):
         # race_mode=separate) or all H x M views of a shape pooled as one (S = 1: pooled)
         self.H = model.hypotheses.hypotheses if self.racing(model, epoch) else 1
         self.S = self.H if self.H == 1 or self.s.race_mode == "separate" else 1
-        self.race_steps, self.race_losses, self.race_lines = 0, None, []
+        self.race_steps, self.race_losses, self.race_lines, self.race_end = 0, None, [], None
 
     def decide_race(self, model, epoch: int, final: bool) -> None:
         """The hypothesis of lowest mean G loss so far becomes the active one; the race ends when it
-        leads clearly, at its last epoch, or when ``final``; a line for the log."""
+        leads clearly (``race_end`` "lead"), at its last epoch ("cap": the pick may be chance), or
+        when ``final`` ("batches"); a line for the log."""
         active, self.race_losses, clear = model.hypotheses.decide(self.s.race_z)
         if active is not None:
             model.selector.active.fill_(active)
         last = epoch + 1 == self.s.race_epochs
-        if clear or last or final:
+        self.race_end = "batches" if final else "lead" if clear else "cap" if last else None
+        if self.race_end:
             model.hypotheses.finish()
-        how = (f" (after {self.race_steps} batches: kept from now on)" if final else
-               " (a clear lead: kept from now on)" if clear else " (kept from now on)" if last else "")
+        how = {"batches": f" (after {self.race_steps} batches: kept from now on)",
+               "lead": " (a clear lead: kept from now on)",
+               "cap": " (the race's last epoch, no clear lead: kept from now on)", None: ""}[self.race_end]
         self.race_lines.append(f"epoch {epoch + 1}: hypotheses' mean {self.s.loss} loss "
                                f"{' / '.join(f'{x:.4f}' for x in self.race_losses)}: hypothesis {active} active{how}")
 
@@ -151,5 +154,6 @@ class ProbeTraining(LearnedTraining):
         if model.polarity is not None:
             out["views_flipped"] = model.polarity.flipped.tolist()
         if model.hypotheses is not None:
-            out.update(hypothesis_active=int(model.selector.active), hypothesis_losses=getattr(self, "race_losses", None))
+            out.update(hypothesis_active=int(model.selector.active), hypothesis_losses=getattr(self, "race_losses", None),
+                       race_end=getattr(self, "race_end", None))
         return out
