@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-install: $(STAMP)  ## create .venv: torch==2.13.0 first (CPU build), then the package with test extras, editable
+install: $(STAMP)  ## create .venv: torch==2.13.0 first (the CUDA build on Linux with a GPU driver; CPU elsewhere), then the package with test extras, editable
 
 run: install  ## train the default MVTN on the embedded synthetic dataset (about 2 minutes; outputs/train/...)
 	$(BIN)/mvtn-train

@@ -33,20 +33,30 @@ SCHEDULES = ("cosine", "step")
 
 
 def check_device(key: str, device: str) -> None:
-    """``cpu``, ``cuda`` or ``cuda:N``, and a CUDA device must exist on this machine."""
+    """``auto``, ``cpu``, ``cuda`` or ``cuda:N``, and a CUDA device must exist on this machine
+    (``auto`` never fails: ``resolve_device``)."""
     import re
 
     import torch
 
-    if not (device == "cpu" or re.fullmatch(r"cuda(:\d+)?", device)):
-        raise ValueError(f"{key}={device!r}: expected cpu, cuda or cuda:N")
+    if not (device in ("auto", "cpu") or re.fullmatch(r"cuda(:\d+)?", str(device))):
+        raise ValueError(f"{key}={device!r}: expected auto, cpu, cuda or cuda:N")
     if device.startswith("cuda"):
         if not torch.cuda.is_available():
             raise ValueError(f"{key}={device!r}: CUDA is not available on this machine (torch {torch.__version__}, "
-                             "built with CUDA " + str(torch.version.cuda) + "); use device=cpu")
+                             "built with CUDA " + str(torch.version.cuda) + "); use device=cpu or device=auto")
         index = int(device.split(":")[1]) if ":" in device else 0
         if index >= torch.cuda.device_count():
             raise ValueError(f"{key}={device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+
+
+def resolve_device(device: str | None) -> str:
+    """``auto`` (or None) -> ``cuda`` when torch sees a CUDA device, else ``cpu``; any other name unchanged."""
+    if device in (None, "auto"):
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
 
 
 VIEW_FAMILIES = ("cup", "decoys", "slab")  # dataset=synthetic_views families (data/synthetic_views.py FAMILIES)
@@ -69,6 +79,9 @@ class DatasetConfig:
     ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``family``: the synthetic_views
     family (cup, decoys, slab; empty for every other dataset); ``val_fraction``: share of
     the official train split held out for model selection when a dataset has no val split.
+    ``num_workers``: DataLoader worker processes; null: automatic (none on CPU, where the loader's
+    work is small next to the step's; on CUDA up to 4, within the process's share of the cores:
+    ``engine/loaders.workers``).
     """
 
     name: str = "synthetic"
@@ -88,7 +101,7 @@ class DatasetConfig:
     split_csv: Optional[str] = None
     synset_dict: Optional[str] = None
     val_fraction: float = 0.1
-    num_workers: int = 0
+    num_workers: Optional[int] = None
 
     def validate(self) -> "DatasetConfig":
         one_of("dataset.name", self.name, DATASETS)
@@ -104,7 +117,8 @@ class DatasetConfig:
         at_least("dataset.seed", self.seed, 0)
         at_least("dataset.max_faces", self.max_faces, 1)
         at_least("dataset.max_vertices", self.max_vertices, 0)
-        at_least("dataset.num_workers", self.num_workers, 0)
+        if self.num_workers is not None:
+            at_least("dataset.num_workers", self.num_workers, 0)
         if len(self.num_per_class) != 3 or min(self.num_per_class) < 1:
             raise ValueError(f"dataset.num_per_class={list(self.num_per_class)}: expected 3 counts >= 1 "
                              "(train, val, test)")
@@ -239,7 +253,7 @@ class TrainConfig:
     patience: Optional[int] = None
     batch_size: int = 16
     seed: int = 0
-    device: str = "cpu"
+    device: str = "auto"
     ckpt_path: Optional[str] = None
     threads: Optional[int] = None
     precision: str = "fp32"
@@ -270,7 +284,7 @@ class TrainConfig:
         check_device("device", self.device)
         if self.threads is not None:
             at_least("threads", self.threads, 1)
-        check_precision(self.precision, self.device)
+        check_precision(self.precision, resolve_device(self.device))
         for name in self.objectives:
             if str(name).startswith("test_"):
                 raise ValueError(f"objectives: {name!r} reads the test split; a search chooses on validation "
@@ -333,7 +347,7 @@ class EvalConfig:
 
     ``task``: classification | retrieval; ``robustness``: none | rotation | occlusion (with
     classification); ``views``: also analyse the predicted views (per-class histograms, cameras
-    around a shape, accuracy with per-class-averaged views). ``device`` / ``batch_size``: null keeps the checkpoint's values. ``root``:
+    around a shape, accuracy with per-class-averaged views). ``device``: auto (CUDA when available, else CPU), cpu, cuda[:N], or null for the checkpoint's; ``batch_size``: null keeps the checkpoint's. ``root``:
     override the dataset root stored in the checkpoint (data moved); ``paths.output_dir``: where
     the run dir goes (``<output_dir>/eval/runs/<time>-<pid>``)."""
 
@@ -342,7 +356,7 @@ class EvalConfig:
     task: str = "classification"
     robustness: str = "none"
     views: bool = False
-    device: Optional[str] = None
+    device: Optional[str] = "auto"
     batch_size: Optional[int] = None
     root: Optional[str] = None
     progress: bool = True

@@ -140,7 +140,7 @@ def test_top_level_keys_reach_the_parts():
     (["+optim.lr_selectr=1"], "adds key 'optim.lr_selectr', which is not in the schema"),
     (["++viewz=3"], "adds key 'viewz'"),
     (["+renderer.sigmaa=1"], "allowed keys here"),
-    (["device=gpu"], "expected cpu, cuda or cuda:N"),
+    (["device=gpu"], "expected auto, cpu, cuda or cuda:N"),
     pytest.param(["device=cuda"], "CUDA is not available on this machine",
                  marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")),
     (["renderer.mode=wire"], "renderer.mode"),
@@ -279,3 +279,17 @@ def test_every_cli_refuses_cuda_on_a_cpu_build_in_one_line(cli, argv, tmp_path):
     assert r.returncode == 2 and len(err) == 1, r.stderr[-2000:]
     assert err[0].startswith(f"mvtn-{cli}: config error") and "device='cuda': CUDA is not available" in err[0]
     assert not list(tmp_path.iterdir())  # refused before any output folder was made
+
+
+def test_device_auto_resolves_to_what_the_machine_has(monkeypatch):
+    """device=auto is every CLI's default and never fails: CUDA when torch sees it, else CPU."""
+    from mvtn_exp.cli.bench import BenchAppConfig
+    from mvtn_exp.cli.render import RenderAppConfig
+    from mvtn_exp.schema import EvalConfig, TrainConfig, check_device, resolve_device
+
+    assert TrainConfig().device == EvalConfig().device == BenchAppConfig().device == RenderAppConfig().device == "auto"
+    check_device("device", "auto")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == resolve_device(None) == "cpu" and resolve_device("cuda:1") == "cuda:1"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_device("auto") == "cuda" and resolve_device("cpu") == "cpu"

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from unittest import mock
 
 import pytest
 from omegaconf import OmegaConf
@@ -239,3 +240,10 @@ def test_joblib_jobs_spread_over_the_visible_gpus():
     assert launcher_device(joblib, "cpu", 1, gpus=2) == "cpu"
     assert launcher_device(OmegaConf.create({"_target_": SLURM}), "cuda", 1, gpus=2) == "cuda"  # a job per node
     assert launcher_device(joblib, "cuda", None, gpus=2) == "cuda"  # not a sweep job
+    # device=auto spreads like cuda where CUDA is, and stays auto (CPU) where it is not
+    import torch
+
+    with mock.patch.object(torch.cuda, "is_available", lambda: True):
+        assert launcher_device(joblib, "auto", 1, gpus=2) == "cuda:1"
+    with mock.patch.object(torch.cuda, "is_available", lambda: False):
+        assert launcher_device(joblib, "auto", 1, gpus=2) == "auto"

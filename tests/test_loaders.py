@@ -92,3 +92,16 @@ def test_a_ranks_share_keeps_its_eval_workers_between_passes_and_releases_them(t
     workers = ev._iterator._workers
     loaders.release(ds)
     assert all(not w.is_alive() for w in workers) and loaders.shard_of(ds, world) is not share
+
+
+def test_automatic_workers_and_pinning_follow_the_device(tmp_path, monkeypatch):
+    """num_workers=null: none on CPU; on CUDA up to 4 within the process's cores (threads when
+    set), with pinned memory; an explicit count is kept on either."""
+    cfg = as_config(tiny_config(str(tmp_path), device="cpu"))
+    assert cfg.dataset.num_workers is None and loaders.workers(cfg) == 0 and not loaders._pin(cfg)
+    assert loaders.workers(_with_workers(cfg, 3)) == 3
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    auto = replace(cfg, device="auto")
+    assert loaders._pin(auto) and loaders.workers(replace(auto, threads=16)) == loaders.CUDA_WORKERS
+    assert loaders.workers(replace(auto, threads=3)) == 2 and loaders.workers(replace(auto, threads=1)) == 0
+    assert loaders.workers(_with_workers(auto, 0)) == 0

@@ -113,3 +113,30 @@ def test_the_lod_accuracy_study_evaluates_one_checkpoint_per_budget(tmp_path):
     assert [r["lod"] for r in table] == ["false", "true"] and table[1]["budget"] == 16
     assert abs(table[0]["acc"] - m["test_acc"]) < 1e-9 and table[0]["n"] == m["test_size"]
     assert "| true | 0.01 per pixel, unchecked | 16 |" in la.to_markdown(table)
+
+
+def test_simplify_meshes_cache_hit_skips_the_host_and_a_moved_mesh_misses(monkeypatch):
+    """A shape seen before (same vertices, faces and settings) comes from the device cache: neither
+    simplified nor hashed again; moving one vertex, or the same mesh in another batch position, is
+    keyed by its own content."""
+    v, f = _sphere()
+    lod._DEVICE_CACHE.clear()
+    calls = []
+    real = lod.simplify
+    monkeypatch.setattr(lod, "simplify", lambda *a, **k: calls.append(1) or real(*a, **k))
+    vt = torch.tensor(v, dtype=torch.float32)
+    small = torch.tensor(f[:300])
+    m = Meshes.from_list([vt, vt], [torch.tensor(f), small])
+    first = lod.simplify_meshes(m, 2000)
+    assert len(calls) == 2 and first.faces_per_shape.tolist()[1] == 300
+    again = lod.simplify_meshes(Meshes.from_list([vt, vt], [torch.tensor(f), small]), 2000)
+    assert len(calls) == 2  # both from the cache
+    assert torch.equal(first.verts, again.verts) and torch.equal(first.faces, again.faces)
+    moved = vt.clone()
+    moved[5, 0] += 1e-3
+    lod.simplify_meshes(Meshes.from_list([moved], [torch.tensor(f)]), 2000)
+    assert len(calls) == 3
+    keys = lod.fingerprints(Meshes.from_list([vt, moved, vt], [torch.tensor(f)] * 3))
+    assert keys[0] == keys[2] != keys[1]
+    # the same vertices with another face order (a different mesh): another key
+    assert lod.fingerprints(Meshes.from_list([vt], [torch.tensor(f[::-1].copy())]))[0] != keys[0]

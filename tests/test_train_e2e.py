@@ -199,10 +199,15 @@ def test_cli_train_then_eval(cache, tmp_path):
     last = r.stdout.strip().splitlines()[-1]
     assert Path(last) == run / "metrics.json" and Path(last).is_file()
     origin = json.loads((run / "provenance.json").read_text())
-    assert origin["version"] and origin["torch"] == torch.__version__ and origin["device"] == "cpu" and origin["host"]
+    assert origin["version"] and origin["torch"] == torch.__version__ and origin["host"]
     assert origin["command"][0].endswith("train.py") or "train" in origin["command"][0]
     assert origin["commit"] is None or len(origin["commit"]) == 40
     record = (run / "train.log").read_text()  # the console lines are in the run's log too
+    # device=auto (the default) says on the log's first line which device ran, and provenance keeps both
+    expect = "cuda" if torch.cuda.is_available() else "cpu"
+    assert origin["device_requested"] == "auto" and origin["device"].startswith(expect)
+    assert record.splitlines()[0].endswith(f"device: {origin['device']}" + (
+        f" ({torch.cuda.get_device_name()})" if expect == "cuda" else "") + " (device=auto)"), record.splitlines()[0]
     assert "epoch 1/1: train loss" in record and "test accuracy" in record
     assert list((run / "tb").glob("events.out.tfevents.*")), "no TensorBoard event file"
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

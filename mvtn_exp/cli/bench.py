@@ -20,6 +20,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
 from ..bench.render_bench import BenchOptions, run_bench
+from ..schema import resolve_device
 from .common import check_overrides
 
 MALLOC_ENV = "MALLOC_MMAP_THRESHOLD_"
@@ -32,7 +33,7 @@ class BenchAppConfig:
 
     quick: tiny grid for tests (64 px, M in {1, 4}, 2k mesh and 2,048 points; no 100k mesh, LOD or batch of 8).
     repeats: most timed runs per measurement (median); time_budget_s: seconds a measurement aims for
-    (slow configs run fewer times, at least once). device: cpu | cuda. threads: torch.set_num_threads
+    (slow configs run fewer times, at least once). device: auto (CUDA when available) | cpu | cuda. threads: torch.set_num_threads
     (null: leave torch's default). dense_max_pairs: run the dense reference only up to this many
     (pixel, face) pairs. progress: tqdm bar on stderr. compiled: the soft targets again with
     ``renderer.compile=true`` (skipped, with the reason, where torch.compile cannot run).
@@ -41,7 +42,7 @@ class BenchAppConfig:
     quick: bool = False
     repeats: int = 5
     time_budget_s: float = 2.0
-    device: str = "cpu"
+    device: str = "auto"
     threads: Optional[int] = None
     dense_max_pairs: float = 2.0e8
     seed: int = 0
@@ -102,7 +103,7 @@ def _app(cfg) -> None:
     obj: BenchAppConfig = OmegaConf.to_object(cfg)
     if obj.threads is not None:
         torch.set_num_threads(obj.threads)
-    opts = BenchOptions(quick=obj.quick, repeats=obj.repeats, device=obj.device, time_budget_s=obj.time_budget_s,
+    opts = BenchOptions(quick=obj.quick, repeats=obj.repeats, device=resolve_device(obj.device), time_budget_s=obj.time_budget_s,
                         dense_max_pairs=obj.dense_max_pairs, seed=obj.seed, progress=obj.progress,
                         modules=obj.modules, scaling=obj.scaling, compiled=obj.compiled)
     run_bench(opts, Path(HydraConfig.get().runtime.output_dir))

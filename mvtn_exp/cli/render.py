@@ -46,17 +46,17 @@ class RenderAppConfig:
     as_points: bool = False
     num_points: int = 2048
     seed: int = 0
-    device: str = "cpu"
+    device: str = "auto"
     renderer: RendererConfig = field(default_factory=RendererConfig)
 
     def validate(self) -> "RenderAppConfig":
-        from ..schema import check_device
+        from ..schema import check_device, resolve_device
 
         check_device("device", self.device)
         if self.renderer.compile:
             from ..render.accel import require
 
-            require(self.device)
+            require(resolve_device(self.device))
         return self
 
 
@@ -118,7 +118,9 @@ def view_angles(cfg: RenderAppConfig, device):
 
 
 def render_file(cfg: RenderAppConfig, out_dir: Path) -> list[Path]:
-    device = torch.device(cfg.device)
+    from ..schema import resolve_device
+
+    device = torch.device(resolve_device(cfg.device))
     torch.manual_seed(cfg.seed)
     rcfg = RendererConfig(**{**OmegaConf.to_container(OmegaConf.structured(cfg.renderer)), "image_size": cfg.image_size})
     shape = load_shape(cfg, device)

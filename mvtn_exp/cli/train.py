@@ -25,7 +25,7 @@ from ..engine import checkpoint, distributed
 from ..engine import run_dir as run_dir_state
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
-from ..schema import TrainConfig, register_configs
+from ..schema import TrainConfig, register_configs, resolve_device
 from ..render import accel
 from .common import check_overrides, check_writable, mark_failed, os_error_text
 
@@ -107,8 +107,11 @@ def launcher_threads(launcher, cores: int) -> int | None:
 def launcher_device(launcher, device: str, job_num: int | None, gpus: int | None = None) -> str:
     """The device of one job of a joblib sweep whose jobs share this machine: ``device=cuda`` (no
     index) goes to GPU ``job_num mod (visible GPUs)``, so the jobs spread over the GPUs instead of
-    all landing on ``cuda:0``; anything else, or another launcher, is left as it is."""
+    all landing on ``cuda:0`` (``device=auto`` on a machine with CUDA too); anything else, or another
+    launcher, is left as it is."""
     target = str(OmegaConf.select(launcher, "_target_", default="") or "")
+    if device == "auto" and resolve_device(device) == "cuda":
+        device = "cuda"
     if device != "cuda" or job_num is None or not target.endswith("JoblibLauncher"):
         return device
     if gpus is None:
@@ -369,7 +372,7 @@ def validate_for_training(cfg: TrainConfig) -> TrainConfig:
     naming the key; a stored config is not checked for them)."""
     cfg.validate()
     if cfg.renderer.compile:
-        accel.require(cfg.device)
+        accel.require(resolve_device(cfg.device))
     for key, path in (("backbone.weights", cfg.backbone.weights), ("selector.from_ckpt", getattr(cfg.selector, "from_ckpt", None))):
         if path and not Path(path).is_file():
             raise ValueError(f"{key}={path!r}: no such file (a local file is expected; nothing is downloaded)")

@@ -11,7 +11,7 @@ import torch
 from ..data.datasets import build_dataset
 from ..model import build_mvtn
 from ..render import accel
-from ..schema import EvalConfig, TrainConfig
+from ..schema import EvalConfig, TrainConfig, resolve_device
 from ..tasks import classification
 from . import checkpoint, eval_modes
 from .provenance import provenance
@@ -52,6 +52,7 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
     if ecfg.root is not None:
         cfg.dataset = replace(cfg.dataset, root=ecfg.root)
     cfg.logger.progress = ecfg.progress
+    cfg.device = resolve_device(cfg.device)
     device = torch.device(cfg.device)
     problem = accel.unavailable(device.type) if cfg.renderer.compile else None
     if problem:  # compile is an accelerator of the same renderer, not part of the model: evaluate eagerly

@@ -5,15 +5,18 @@ processes and with one or several training processes, so resume is exact and
 ``dataset.num_workers`` changes no result (tested). With ``num_workers > 0`` each dataset's loader
 is built once and keeps its workers between epochs (``persistent_workers``: a new epoch only
 sets the sampler's epoch), instead of starting them again for every epoch and every validation
-pass. Host memory is pinned when training on CUDA. ``release`` ends a run's workers.
+pass. Host memory is pinned when training on CUDA, and ``num_workers=null`` (the default) gives
+workers there (``workers``) and none on CPU. ``release`` ends a run's workers.
 """
 from __future__ import annotations
+
+import os
 
 import torch
 from torch.utils.data import DataLoader, Sampler
 
 from ..data.collate import collate_shapes
-from ..schema import TrainConfig
+from ..schema import TrainConfig, resolve_device
 from . import distributed
 
 # attribute under which a dataset keeps its persistent loaders (they live and die with it)
@@ -77,7 +80,22 @@ class _Loader(DataLoader):
 
 def _pin(cfg: TrainConfig) -> bool:
     """Pinned host memory when training on CUDA (faster copies to the device)."""
-    return str(cfg.device).startswith("cuda")
+    return resolve_device(cfg.device).startswith("cuda")
+
+
+# automatic workers on CUDA: enough to hide the loading of a batch behind a GPU step
+CUDA_WORKERS = 4
+
+
+def workers(cfg: TrainConfig) -> int:
+    """``dataset.num_workers``, or when null: 0 on CPU (the step's threads need the cores), on
+    CUDA ``min(CUDA_WORKERS, cores of this process - 1)`` (``threads`` when set)."""
+    if cfg.dataset.num_workers is not None:
+        return cfg.dataset.num_workers
+    if not _pin(cfg):
+        return 0
+    cores = cfg.threads or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    return max(0, min(CUDA_WORKERS, cores - 1))
 
 
 def _kept(dataset, key: tuple) -> DataLoader | None:
@@ -92,13 +110,13 @@ def _keep(dataset, key: tuple, loader: DataLoader) -> DataLoader:
 
 
 def _common(cfg: TrainConfig) -> dict:
-    workers = cfg.dataset.num_workers
-    return dict(collate_fn=collate_shapes, num_workers=workers, persistent_workers=workers > 0, pin_memory=_pin(cfg))
+    n = workers(cfg)
+    return dict(collate_fn=collate_shapes, num_workers=n, persistent_workers=n > 0, pin_memory=_pin(cfg))
 
 
 def train_loader(cfg: TrainConfig, dataset, epoch: int, world: distributed.World = distributed.World()) -> DataLoader:
     """The shuffled train loader of ``epoch`` (``EpochBatches``); reused across epochs with workers."""
-    key = ("train", cfg.batch_size, cfg.seed, world.rank, world.size, cfg.dataset.num_workers, _pin(cfg))
+    key = ("train", cfg.batch_size, cfg.seed, world.rank, world.size, workers(cfg), _pin(cfg))
     loader = _kept(dataset, key)
     if loader is not None:
         loader.batch_sampler.set_epoch(epoch)
@@ -111,7 +129,7 @@ def train_loader(cfg: TrainConfig, dataset, epoch: int, world: distributed.World
 
 def eval_loader(cfg: TrainConfig, dataset) -> DataLoader:
     """The dataset in its own order, in batches of ``batch_size``; reused with workers."""
-    key = ("eval", cfg.batch_size, cfg.dataset.num_workers, _pin(cfg))
+    key = ("eval", cfg.batch_size, workers(cfg), _pin(cfg))
     loader = _kept(dataset, key)
     if loader is not None:
         return loader

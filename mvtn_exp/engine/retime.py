@@ -25,6 +25,7 @@ import torch
 
 from ..data.datasets import build_dataset
 from ..render import accel
+from ..schema import resolve_device
 from ..tasks import classification
 from . import checkpoint
 from .provenance import provenance
@@ -50,6 +51,7 @@ def retime_job(job_dir, passes: int = 3) -> dict:
     recorded = json.loads((job_dir / "metrics.json").read_text())
     state = checkpoint.load(path, map_location="cpu")
     cfg = config_from_checkpoint(state, path)
+    cfg.device = resolve_device(cfg.device)
     problem = accel.unavailable(torch.device(cfg.device).type) if cfg.renderer.compile else None
     if problem:  # a compiled run's time is its compiled renderer's: refused rather than timed eagerly
         raise RetimeError(f"{job_dir}: renderer.compile=true, and {problem}; re-time it where it trained")

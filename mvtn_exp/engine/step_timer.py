@@ -15,13 +15,14 @@ class StepTimer:
     """Accumulates seconds per stage over steps; ``means()`` -> seconds per step per stage (+ total)."""
 
     def __init__(self, device: torch.device) -> None:
+        self.device = device
         self.sync = device.type == "cuda"
         self.seconds = dict.fromkeys(STAGES, 0.0)
         self.steps = 0
 
     def now(self) -> float:
         if self.sync:
-            torch.cuda.synchronize()
+            torch.cuda.synchronize(self.device)  # the run's own GPU (a sweep job may hold cuda:N)
         return time.perf_counter()
 
     @contextmanager

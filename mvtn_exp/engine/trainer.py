@@ -26,7 +26,7 @@ from ..data.datasets import view_report as dataset_view_report
 from ..model import MVTN, build_mvtn
 from ..models import sync_bn
 from ..models.precision import grad_scaler
-from ..schema import TrainConfig, typed_train_config
+from ..schema import TrainConfig, resolve_device, typed_train_config
 from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
@@ -138,7 +138,9 @@ def selector_lr(opt) -> float | None:
 
 
 def _grads_finite(params) -> bool:
-    return all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None)
+    """True when every gradient is finite: one host sync for all of them (not one per parameter)."""
+    flags = [torch.isfinite(p.grad).all() for p in params if p.grad is not None]
+    return bool(torch.stack(flags).all()) if flags else True
 
 
 def _grad_norm(params) -> float:
@@ -418,24 +420,34 @@ def epoch_line(epoch: int, cfg: TrainConfig, tr: dict, val: dict, val_ema, impro
             + (f"detail seen {detail['val_detail_seen']:.2f} | " if "val_detail_seen" in detail else "") + f"{seconds:.1f}s")
 
 
+def _device_name(device: torch.device) -> str:
+    return f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""
+
+
 def prepare_run(cfg: TrainConfig, run_dir: Path, world: distributed.World):
-    """The device, the run's provenance record (a resumed run's is written by ``start_record``
-    once the resume is accepted), and a warning for a learned G on a renderer without a useful camera gradient."""
+    """The device and the run's provenance record (a resumed run's is written by ``start_record``
+    once the resume is accepted)."""
     if world.enabled:
         check_world(cfg, world)
-    device = torch.device(distributed.init(world, cfg.device))
+    device = torch.device(distributed.init(world, resolve_device(cfg.device)))
     if world.main:
         run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
-    origin = {**provenance(str(device)), "world_size": world.size}
+    origin = {**provenance(str(device)), "device_requested": cfg.device, "world_size": world.size}
     if world.main and not cfg.ckpt_path:  # a new run's folder says what made it from the start
         (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
+    return device, origin
+
+
+def announce(cfg: TrainConfig, device: torch.device) -> None:
+    """The log's first lines, once the run is accepted (a refused resume writes nothing): the
+    device that runs it, and a warning for a learned G on a renderer without a useful camera gradient."""
+    log.info("device: %s%s (device=%s)", device, _device_name(device), cfg.device)
     problem = (cfg.renderer.camera_gradient_problem()
                if cfg.selector.uses_camera_gradient() and cfg.dataset.shape == "mesh" else None)
     if problem:
         log.warning("selector=%s with %s", cfg.selector.name, problem)
-    return device, origin
 
 
 def start_record(run_dir: Path, origin: dict, resumed: bool) -> None:
@@ -510,6 +522,8 @@ def train(cfg, run_dir, build_model=None) -> dict:
     if cfg.ckpt_path:
         resume = checkpoint.load(cfg.ckpt_path)
         checkpoint.check_compatible(resume["config"], cfg_dict)
+    else:
+        announce(cfg, device)  # (a resumed run's, once its checkpoint is accepted whole)
 
     seeding.seed_everything(cfg.seed)
     datasets = make_datasets(cfg)
@@ -537,6 +551,7 @@ def train(cfg, run_dir, build_model=None) -> dict:
     if resume is not None:
         start, best_acc, best_epoch, skipped, history, step = _resume(cfg, run_dir, model, opt, sched, resume, scaler,
                                                                       ema, classes, world)
+        announce(cfg, device)
     if world.main:
         start_record(run_dir, origin, resumed=resume is not None)
 

@@ -74,21 +74,31 @@ class Cameras:
         return 1.0 / math.tan(math.radians(self.fov) / 2.0)
 
 
-def to_camera_packed(points: torch.Tensor, counts: torch.Tensor, R: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
+def to_camera_packed(points: torch.Tensor, counts: torch.Tensor, R: torch.Tensor, C: torch.Tensor,
+                     shape_of: torch.Tensor | None = None) -> torch.Tensor:
     """World -> camera coordinates of packed shapes in every view of their own.
 
     points: ``[N, 3]`` packed (shape b owns ``counts[b]`` consecutive rows); R ``[B, M, 3, 3]``;
-    C ``[B, M, 3]``. Returns ``[N * M, 3]`` ordered point-major (row ``n * M + m``).
-    One small matmul per shape: ``R (p - C) = R p - R C``.
+    C ``[B, M, 3]``; shape_of: ``[N]`` the shape of each point (derived from ``counts`` when None).
+    Returns ``[N * M, 3]`` ordered point-major (row ``n * M + m``): ``R (p - C) = R p - R C``.
+    Element-wise products gathered per point, no matmul: no loop over shapes, no host sync, and
+    the same float32 result under TF32 or autocast settings that would round a matmul.
     """
     B, M = R.shape[:2]
-    RC = torch.einsum("bmij,bmj->bmi", R, C)
-    out = []
-    for b, part in enumerate(torch.split(points, counts.tolist())):
-        out.append(torch.einsum("mij,vj->vmi", R[b], part) - RC[b])
-    if not out:
+    if len(points) == 0:
         return points.new_zeros(0, 3)
-    return torch.cat(out).reshape(-1, 3)
+    if shape_of is None:
+        shape_of = torch.repeat_interleave(torch.arange(B, device=points.device), counts, output_size=len(points))
+    RC = (R * C.unsqueeze(-2)).sum(-1)  # [B, M, 3]
+    rows = torch.cat([R.reshape(B, M, 9), RC], -1).permute(2, 0, 1)  # [12, B, M]: R_ij, then RC_i
+
+    def g(k):  # entry k of each point's own views ``[N, M]`` (one at a time: memory of one [N, M])
+        return rows[k].index_select(0, shape_of)
+
+    p = points.unsqueeze(-1).unbind(1)  # 3 x [N, 1]
+    out = [torch.addcmul(torch.addcmul(g(3 * i) * p[0], g(3 * i + 1), p[1]), g(3 * i + 2), p[2]) - g(9 + i)
+           for i in range(3)]
+    return torch.stack(out, -1).reshape(-1, 3)
 
 
 def camera_to_ndc(cam: torch.Tensor, cameras: Cameras, znear: float) -> tuple[torch.Tensor, torch.Tensor]:

@@ -119,8 +119,42 @@ def simplify(verts: np.ndarray, faces: np.ndarray, budget: int, image_size: int 
     return res
 
 
+# per mesh fingerprint (counts and two fixed random projections of its vertices and faces) and device:
+# the simplified mesh there, so a hit costs no copy to the host, no hash and no upload
+# (at most DEVICE_CACHE_SIZE entries, the oldest dropped first: augmented shapes are new every epoch)
+_DEVICE_CACHE: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+DEVICE_CACHE_SIZE = 8192
+_PROBE_SEED = 20211
+
+
+def fingerprints(meshes) -> list[tuple]:
+    """One key per shape of packed Meshes, computed where the mesh lives with a single host sync:
+    (vertex count, face count, and float64 sums of the vertices and of the local face indices
+    weighted by fixed pseudo-random vectors). Two meshes share a key only if these sums coincide
+    to the last bit: a moved, rotated, scaled or re-indexed mesh gets a new one."""
+    dev = meshes.verts.device
+    gen = torch.Generator().manual_seed(_PROBE_SEED)
+    wv = torch.rand(2, 3, generator=gen, dtype=torch.float64).to(dev)
+    wf = torch.rand(2, 3, generator=gen, dtype=torch.float64).to(dev)
+    B = len(meshes)
+    v = meshes.verts.detach().to(torch.float64)
+    shape_of_vert = meshes.shape_of_vert()
+    # the order of the vertices counts too: a weight per position within its own shape
+    pos = (torch.arange(len(v), device=dev) - meshes.vert_offsets().index_select(0, shape_of_vert)).to(torch.float64)
+    vsum = torch.zeros(B, 3, dtype=torch.float64, device=dev).index_add_(
+        0, shape_of_vert, torch.stack([v @ wv[0], v @ wv[1], (v @ wv[0]) * torch.sin(pos)], 1))
+    local = (meshes.faces - meshes.vert_offsets().index_select(0, meshes.shape_of_face())[:, None]).to(torch.float64)
+    fsum = torch.zeros(B, 2, dtype=torch.float64, device=dev).index_add_(
+        0, meshes.shape_of_face(), torch.stack([local @ wf[0], local @ wf[1]], 1))
+    counts = torch.stack([meshes.verts_per_shape, meshes.faces_per_shape], 1).to(torch.float64)
+    return [tuple(row) for row in torch.cat([counts, vsum, fsum], 1).tolist()]
+
+
 def simplify_meshes(meshes, budget: int, image_size: int | None = None, min_iou: float = 0.0):
-    """Apply ``simplify`` shape by shape to packed Meshes; returns new Meshes (no vertex gradients)."""
+    """Apply ``simplify`` shape by shape to packed Meshes; returns new Meshes (no vertex gradients).
+
+    Shapes already simplified for these settings on this device come from a cache keyed by
+    ``fingerprints`` (no host round trip); only new shapes are copied to the host and simplified."""
     from ..data.shapes import Meshes
 
     if meshes.verts.requires_grad:
@@ -128,14 +162,25 @@ def simplify_meshes(meshes, budget: int, image_size: int | None = None, min_iou:
                          "simplification creates new vertices; set renderer.lod=false")
     if len(meshes) == 0 or int(meshes.faces_per_shape.max()) <= budget:
         return meshes
+    dev = meshes.verts.device
+    settings = (budget, image_size if min_iou > 0 else None, min_iou, str(dev), meshes.verts.dtype)
     vs, fs = [], []
-    offsets = meshes.vert_offsets().tolist()
-    fstart = 0
-    for b, (nv, nf) in enumerate(zip(meshes.verts_per_shape.tolist(), meshes.faces_per_shape.tolist())):
-        v = meshes.verts[offsets[b]:offsets[b] + nv].detach().cpu().numpy()
-        f = (meshes.faces[fstart:fstart + nf] - offsets[b]).cpu().numpy()
-        fstart += nf
-        r = simplify(v, f, budget, image_size, min_iou)
-        vs.append(torch.as_tensor(r.verts, device=meshes.verts.device, dtype=meshes.verts.dtype))
-        fs.append(torch.as_tensor(r.faces, device=meshes.verts.device))
+    offsets = fstarts = None
+    for b, fp in enumerate(fingerprints(meshes)):
+        key = (fp, *settings)
+        hit = _DEVICE_CACHE.get(key)
+        if hit is None:
+            if offsets is None:
+                offsets = meshes.vert_offsets().tolist()
+                fstarts = (torch.cumsum(meshes.faces_per_shape, 0) - meshes.faces_per_shape).tolist()
+            nv, nf = int(fp[0]), int(fp[1])
+            v = meshes.verts[offsets[b]:offsets[b] + nv].detach().cpu().numpy()
+            f = (meshes.faces[fstarts[b]:fstarts[b] + nf] - offsets[b]).cpu().numpy()
+            r = simplify(v, f, budget, image_size, min_iou)
+            hit = (torch.as_tensor(r.verts, device=dev, dtype=meshes.verts.dtype), torch.as_tensor(r.faces, device=dev))
+            if len(_DEVICE_CACHE) >= DEVICE_CACHE_SIZE:
+                _DEVICE_CACHE.pop(next(iter(_DEVICE_CACHE)))
+            _DEVICE_CACHE[key] = hit
+        vs.append(hit[0])
+        fs.append(hit[1])
     return Meshes.from_list(vs, fs, meshes.names)

@@ -26,6 +26,20 @@ from .topology import edge_neighbours
 SHADE_FLAT = "seen"
 
 
+LOW_PRECISION = (torch.float16, torch.bfloat16)
+
+
+def full_precision(shapes, azim, elev, dist):
+    """Shapes and views with float16 / bfloat16 tensors cast to float32 (others unchanged)."""
+    def up(t):
+        return t.float() if t.dtype in LOW_PRECISION else t
+
+    ref = shapes.verts if isinstance(shapes, Meshes) else shapes.points
+    if ref.dtype in LOW_PRECISION:
+        shapes = shapes.to(dtype=torch.float32)
+    return shapes, up(azim), up(elev), up(dist)
+
+
 @dataclass
 class RenderOutput:
     """images ``[B, M, 3, H, W]`` in [0, 1]; alpha ``[B, M, 1, H, W]`` coverage; stats: counters."""
@@ -54,18 +68,22 @@ class MultiViewRenderer(nn.Module):
 
     # ---------------------------------------------------------------- public API
     def forward(self, shapes, azim: torch.Tensor, elev: torch.Tensor, dist=2.2) -> RenderOutput:
-        if not torch.is_tensor(dist):
-            dist = torch.full_like(azim, float(dist))
+        if not torch.is_tensor(dist):  # (in azim's type, or float32 for a low-precision azim)
+            dist = torch.full(azim.shape, float(dist), device=azim.device,
+                              dtype=torch.float32 if azim.dtype in LOW_PRECISION else azim.dtype)
         if azim.dim() != 2:
             raise ValueError(f"renderer: views must be [B, M], got azim {tuple(azim.shape)}")
         if len(shapes) != azim.shape[0]:
             raise ValueError(f"renderer: {len(shapes)} shapes but views for {azim.shape[0]} (azim {tuple(azim.shape)})")
-        with accel.compiled(self.cfg.compile):
+        if not isinstance(shapes, (Meshes, PointClouds)):
+            raise TypeError(f"renderer: expected Meshes or PointClouds, got {type(shapes).__name__}")
+        # R computes in float32 whatever autocast surrounds it (C may run in bf16 / fp16: the search's
+        # depth order, barycentrics and blend weights would round wrongly there); float64 stays float64
+        with torch.autocast(azim.device.type, enabled=False), accel.compiled(self.cfg.compile):
+            shapes, azim, elev, dist = full_precision(shapes, azim, elev, dist)
             if isinstance(shapes, Meshes):
                 return self._render_meshes(shapes, azim, elev, dist)
-            if isinstance(shapes, PointClouds):
-                return self._render_points(shapes, azim, elev, dist)
-        raise TypeError(f"renderer: expected Meshes or PointClouds, got {type(shapes).__name__}")
+            return self._render_points(shapes, azim, elev, dist)
 
     # ---------------------------------------------------------------- shared helpers
     def _cameras(self, azim, elev, dist) -> Cameras:
@@ -75,10 +93,10 @@ class MultiViewRenderer(nn.Module):
     def _project(self, pts: torch.Tensor, counts: torch.Tensor, cams: Cameras):
         """Packed ``[N, 3]`` world points -> per (point, view) NDC xy ``[N*M, 2]``, depth ``[N*M]``, image ``[N*M]``."""
         B, M = cams.azim.shape
-        shape_of = torch.repeat_interleave(torch.arange(B, device=pts.device), counts)
+        shape_of = torch.repeat_interleave(torch.arange(B, device=pts.device), counts, output_size=len(pts))
         image = (shape_of[:, None] * M + torch.arange(M, device=pts.device)).reshape(-1)
         R, C = cams.frames()
-        xy, z = camera_to_ndc(to_camera_packed(pts, counts, R, C), cams, self.cfg.znear)
+        xy, z = camera_to_ndc(to_camera_packed(pts, counts, R, C, shape_of), cams, self.cfg.znear)
         return xy, z, image
 
     def _background(self, ref: torch.Tensor) -> torch.Tensor:
