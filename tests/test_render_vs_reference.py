@@ -72,7 +72,7 @@ def test_soft_images_match_dense(monkeypatch, shading):
                           coverage_tol=0.0)
     out = r(meshes, *VIEWS, 2.5)
 
-    def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates, ranking):
+    def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates, ranking, overflow=None):
         return reference.dense_face_search(pf.xy, pf.z, pf.image, H=H, W=W, K=K, blur=blur_radius, znear=r.cfg.znear,
                                            cull_backfaces=False, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, W), num_images=3,
                                            ranking=ranking)
@@ -139,7 +139,7 @@ def test_soft_edges_match_unlimited_k(monkeypatch, shading, open_half, slots):
     out = r(meshes, azim, elev, 2.2)
     assert out.stats["max_candidates"] > 3 * 3, "the scene must have rims with many more faces than slots"
 
-    def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates, ranking):
+    def dense(pf, *, H, W, K, blur_radius, tile_size, max_candidates, ranking, overflow=None):
         return reference.dense_face_search(pf.xy, pf.z, pf.image, H=H, W=W, K=None, blur=blur_radius, znear=r.cfg.znear,
                                            cull_backfaces=False, area_eps=mesh_raster.area_eps(pf.xy.dtype, H, W),
                                            num_images=2, ranking=ranking)

@@ -67,6 +67,7 @@ class BenchOptions:
     modules: bool = True  # the paper's module table (bench/modules.py)
     scaling: bool = True  # time and memory against faces, pixels, views, batch (bench/scaling.py)
     compiled: bool = True  # the soft targets again with renderer.compile=true (where torch.compile runs)
+    paper_scale: bool = False  # B = 32 x 12 x 224 px: kernel ops, syncs, memory budget (bench/paper_scale.py)
 
 
 @dataclass
@@ -250,6 +251,7 @@ class Results:
     edges: list = field(default_factory=list)
     modules: list = field(default_factory=list)
     scaling: list = field(default_factory=list)
+    paper_scale: dict = field(default_factory=dict)
     targets: list = field(default_factory=list)
 
 
@@ -447,6 +449,8 @@ class Bench:
             out += [(f"memory batch8 {k}", lambda k=k: self.job_batch8(k)) for k in ("mesh", "points")]
         if self.opts.scaling:
             out.append(("scaling curves: memory", self.job_scaling_memory))
+        if self.opts.paper_scale:  # (peaks read with the allocator pinned; its time ratios are same-mode ratios)
+            out.append(("paper scale: B = 32 x 12 x 224 px", self.job_paper_scale))
         out.append(("switch allocator to speed mode", self.job_speed_mode))
         out += [(f"resnet18 {M}x{g.resnet_size}px", lambda M=M: self.job_resnet(M, g.resnet_size)) for M in g.views]
         out += [(f"time {n} {s}px M={m} K={k} {sh}", lambda a=(n, s, m, k, sh): self.job_render_time(*a))
@@ -463,6 +467,11 @@ class Bench:
         if self.opts.scaling:
             out.append(("scaling curves: time", self.job_scaling_time))
         return out
+
+    def job_paper_scale(self) -> None:
+        from . import paper_scale
+
+        self.res.paper_scale = paper_scale.measure(self.dev)
 
     def job_scaling_memory(self) -> None:
         from .scaling import Scaling
@@ -575,6 +584,10 @@ def targets(bench: Bench) -> list[dict]:
             continue
         out.append(_target(title, f"{row['peak_mib']:.0f} MiB", f"<= {LIMIT_MIB:.0f} MiB", row["peak_mib"] <= LIMIT_MIB,
                            value=row["peak_mib"], limit=LIMIT_MIB))
+    if res.paper_scale:
+        from . import paper_scale
+
+        out += [_target(*row) for row in paper_scale.targets(res.paper_scale, bench.dev.type == "cuda")]
     return out
 
 
@@ -701,6 +714,10 @@ def to_markdown(res: Results) -> str:
         from .modules import markdown as modules_markdown
 
         parts.append(modules_markdown(res.modules))
+    if res.paper_scale:
+        from . import paper_scale
+
+        parts.append(paper_scale.markdown(res.paper_scale, m["device"].startswith("cuda")))
     if res.scaling:
         from .scaling import markdown as scaling_markdown
 

@@ -36,7 +36,10 @@ class BenchAppConfig:
     (slow configs run fewer times, at least once). device: auto (CUDA when available) | cpu | cuda. threads: torch.set_num_threads
     (null: leave torch's default). dense_max_pairs: run the dense reference only up to this many
     (pixel, face) pairs. progress: tqdm bar on stderr. compiled: the soft targets again with
-    ``renderer.compile=true`` (skipped, with the reason, where torch.compile cannot run).
+    ``renderer.compile=true`` (skipped, with the reason, where torch.compile cannot run). paper_scale:
+    the renderer at B = 32 x 12 x 224 px (kernel ops and syncs per call, peak memory under
+    ``renderer.memory_budget_mb``, time per shape against ResNet-18; ``bench/paper_scale.py``);
+    null: on CUDA only (about 15 minutes on 2 CPU cores).
     """
 
     quick: bool = False
@@ -50,6 +53,7 @@ class BenchAppConfig:
     modules: bool = True
     scaling: bool = True
     compiled: bool = True
+    paper_scale: Optional[bool] = None
 
     def validate(self) -> "BenchAppConfig":
         from ..checks import at_least
@@ -103,9 +107,11 @@ def _app(cfg) -> None:
     obj: BenchAppConfig = OmegaConf.to_object(cfg)
     if obj.threads is not None:
         torch.set_num_threads(obj.threads)
-    opts = BenchOptions(quick=obj.quick, repeats=obj.repeats, device=resolve_device(obj.device), time_budget_s=obj.time_budget_s,
+    device = resolve_device(obj.device)
+    opts = BenchOptions(quick=obj.quick, repeats=obj.repeats, device=device, time_budget_s=obj.time_budget_s,
                         dense_max_pairs=obj.dense_max_pairs, seed=obj.seed, progress=obj.progress,
-                        modules=obj.modules, scaling=obj.scaling, compiled=obj.compiled)
+                        modules=obj.modules, scaling=obj.scaling, compiled=obj.compiled,
+                        paper_scale=obj.paper_scale if obj.paper_scale is not None else device.startswith("cuda"))
     run_bench(opts, Path(HydraConfig.get().runtime.output_dir))
 
 

@@ -16,14 +16,22 @@ class ShapeError(ValueError):
     """A shape that cannot be rendered (NaN/Inf coordinates, bad indices, ...); names the shape."""
 
 
-def _shape_index(counts: torch.Tensor) -> torch.Tensor:
-    return torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
+def _shape_index(counts: torch.Tensor, total: int) -> torch.Tensor:
+    """``[total]`` the shape of each packed row (``total = counts.sum()``, given: no host sync)."""
+    return torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts, output_size=total)
+
+
+def trusted(cls, **fields):
+    """An instance of ``cls`` from fields already checked (a copy of a checked one): no ``__post_init__``."""
+    obj = cls.__new__(cls)
+    obj.__dict__.update(fields)
+    return obj
 
 
 def _check_finite(name: str, tensor: torch.Tensor, counts: torch.Tensor, names: Sequence[str]) -> None:
     bad = ~torch.isfinite(tensor).all(-1)
     if bool(bad.any()):
-        shape = int(_shape_index(counts)[bad.nonzero()[0, 0]])
+        shape = int(_shape_index(counts, len(tensor))[bad.nonzero()[0, 0]])
         raise ShapeError(
             f"shape '{names[shape]}' (batch index {shape}) has {int(bad.sum())} non-finite {name} "
             "(NaN or Inf); fix or drop it before rendering"
@@ -55,8 +63,9 @@ class Meshes:
             raise ShapeError(f"meshes: faces must be [F, 3], got {tuple(self.faces.shape)}")
         _check_finite("vertices", self.verts, self.verts_per_shape, self.names)
         if self.faces.numel():
-            lo = torch.repeat_interleave(self.vert_offsets(), self.faces_per_shape)
-            hi = lo + torch.repeat_interleave(self.verts_per_shape, self.faces_per_shape)
+            nf = len(self.faces)
+            lo = torch.repeat_interleave(self.vert_offsets(), self.faces_per_shape, output_size=nf)
+            hi = lo + torch.repeat_interleave(self.verts_per_shape, self.faces_per_shape, output_size=nf)
             bad = ((self.faces < lo[:, None]) | (self.faces >= hi[:, None])).any(-1)
             if bool(bad.any()):
                 shape = int(self.shape_of_face()[bad.nonzero()[0, 0]])
@@ -90,16 +99,16 @@ class Meshes:
         return torch.cumsum(self.verts_per_shape, 0) - self.verts_per_shape
 
     def shape_of_vert(self) -> torch.Tensor:
-        return _shape_index(self.verts_per_shape)
+        return _shape_index(self.verts_per_shape, len(self.verts))
 
     def shape_of_face(self) -> torch.Tensor:
-        return _shape_index(self.faces_per_shape)
+        return _shape_index(self.faces_per_shape, len(self.faces))
 
     def to(self, device=None, dtype=None) -> "Meshes":
-        return Meshes(
-            self.verts.to(device=device, dtype=dtype), self.faces.to(device), self.verts_per_shape.to(device),
-            self.faces_per_shape.to(device), list(self.names),
-        )
+        """The same meshes on ``device`` / in ``dtype`` (not checked again: no host sync)."""
+        return trusted(Meshes, verts=self.verts.to(device=device, dtype=dtype), faces=self.faces.to(device),
+                        verts_per_shape=self.verts_per_shape.to(device), faces_per_shape=self.faces_per_shape.to(device),
+                        names=list(self.names))
 
     def with_verts(self, verts: torch.Tensor) -> "Meshes":
         """Same topology, new (e.g. transformed, requires-grad) vertex positions ``[V, 3]``."""
@@ -146,11 +155,13 @@ class PointClouds:
         return len(self.points_per_shape)
 
     def shape_of_point(self) -> torch.Tensor:
-        return _shape_index(self.points_per_shape)
+        return _shape_index(self.points_per_shape, len(self.points))
 
     def to(self, device=None, dtype=None) -> "PointClouds":
+        """The same clouds on ``device`` / in ``dtype`` (not checked again: no host sync)."""
         colors = None if self.colors is None else self.colors.to(device=device, dtype=dtype)
-        return PointClouds(self.points.to(device=device, dtype=dtype), self.points_per_shape.to(device), colors, list(self.names))
+        return trusted(PointClouds, points=self.points.to(device=device, dtype=dtype),
+                        points_per_shape=self.points_per_shape.to(device), colors=colors, names=list(self.names))
 
     def with_points(self, points: torch.Tensor) -> "PointClouds":
         return PointClouds(points, self.points_per_shape, self.colors, list(self.names))

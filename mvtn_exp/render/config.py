@@ -78,6 +78,10 @@ class RendererConfig:
     lod_min_iou: float = 0.99
     # search
     tile_size: int = 32
+    # how much memory one render may hold at once (render/budget.py): shapes are rendered in groups
+    # and candidates searched in chunks that fit; null: a quarter of the memory free to the process
+    # on CUDA, and on CPU no grouping, chunks of max_candidates (a size that suits CPU caches)
+    memory_budget_mb: Optional[float] = None
     max_candidates: int = 1 << 21
     # torch.compile the per-candidate maths (render/accel.py): faster soft renders after a one-time
     # compile per process (measured in docs/results/renderer-speed.md); results equal eager's to
@@ -120,6 +124,8 @@ class RendererConfig:
         for key in ("background", "light_direction", "object_color"):
             if len(getattr(self, key)) != 3:
                 raise ValueError(f"renderer.{key} must have 3 entries, got {getattr(self, key)}")
+        if self.memory_budget_mb is not None and not self.memory_budget_mb > 0:
+            raise ValueError(f"renderer.memory_budget_mb must be > 0 (MiB) or null (automatic), got {self.memory_budget_mb}")
         if self.depth_window is not None and not self.depth_window > 0:
             raise ValueError(f"renderer.depth_window must be > 0 or null, got {self.depth_window}")
         if self.blur_radius is not None and self.blur_radius < 0:

@@ -256,7 +256,7 @@ def face_boxes(cols: torch.Tensor, image: torch.Tensor, radius: float, H: int, W
 
 
 def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int,
-                 ranking: "soft_search.SoftRanking | None" = None) -> tiles.Selection:
+                 ranking: "soft_search.SoftRanking | None" = None, overflow=None) -> tiles.Selection:
     """K best faces per pixel among faces whose triangle is within ``blur_radius`` (NDC).
 
     Hard mode (``blur_radius == 0``): the K nearest covering faces. Soft mode: ``soft_search.search``
@@ -269,16 +269,16 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
             if ranking is None:
                 raise ValueError("search_faces: soft mode (blur_radius > 0) needs a SoftRanking")
             return soft_search.search(pf, H=H, W=W, K=K, blur_radius=blur_radius, tile_size=tile_size,
-                                      max_candidates=max_candidates, ranking=ranking)
+                                      max_candidates=max_candidates, ranking=ranking, overflow=overflow)
         num_pixels = pf.num_images * H * W
         if K > 1:
-            return tiles.merge(list(_hard_picks(pf, 0, pf.cols.shape[1], H, W, K, tile_size, max_candidates, num_pixels)),
-                               K, pf.cols.device)
+            return tiles.merge(list(_hard_picks(pf, 0, pf.cols.shape[1], H, W, K, tile_size, max_candidates, num_pixels,
+                                                overflow)), K, pf.cols.device)
         # K = 1: winners of runs of face-views combine (``tiles.nearest_one``), so the per-face work
         # (boxes, face tables, row spans) is done a slice at a time: memory bounded for any batch
         n, step = pf.cols.shape[1], max(1, max_candidates // 8)
         picks = [p for a in range(0, n, step) for p in _hard_picks(pf, a, min(n, a + step), H, W, 1, tile_size,
-                                                                      max_candidates, num_pixels)]
+                                                                      max_candidates, num_pixels, overflow)]
         if len(picks) != 1:
             picks = [tiles.nearest_one(*(torch.cat(t) for t in zip(*picks)), num_pixels)] if picks else []
         empty = torch.zeros(0, dtype=torch.long, device=pf.cols.device)
@@ -287,7 +287,7 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
 
 
 def _hard_picks(pf: ProjectedFaces, start: int, stop: int, H: int, W: int, K: int, tile_size: int, max_candidates: int,
-                num_pixels: int):
+                num_pixels: int, overflow=None):
     """The nearest covering faces among face-views ``start:stop``, per candidate chunk: K = 1
     ``tiles.nearest_one`` triples (chunks of consecutive faces), else ``tiles.select_nearest``
     selections (whole pixels per chunk)."""
@@ -303,7 +303,7 @@ def _hard_picks(pf: ProjectedFaces, start: int, stop: int, H: int, W: int, K: in
     span = row_spans(table_planes(table), boxes, 0.0, SMALL_BOX_HARD, W)
     # faces covering each pixel, depth from the barycentric planes
     for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, cols.dtype, span, SMALL_BOX_HARD,
-                                        by_primitive=K == 1):
+                                        by_primitive=K == 1, overflow=overflow):
         cand = tiles.concat(parts)
         lam = barycentrics(table, cand.prim, cand.x, cand.y)
         inside = torch.nonzero(covers(lam)).squeeze(1)

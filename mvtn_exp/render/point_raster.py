@@ -13,7 +13,8 @@ from .ops import take
 
 
 def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive: torch.Tensor, *, H: int, W: int,
-                  K: int, radius: float, num_images: int, tile_size: int, max_candidates: int) -> tiles.Selection:
+                  K: int, radius: float, num_images: int, tile_size: int, max_candidates: int,
+                  overflow=None) -> tiles.Selection:
     """xy ``[N, 2]`` NDC, z ``[N]`` depth, image ``[N]``, alive ``[N]`` bool -> Selection over point-views."""
     with torch.no_grad():
         pv = torch.nonzero(alive).squeeze(1)
@@ -28,7 +29,7 @@ def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive:
             return tiles.columns(cx - half, cx + half, W)
 
         picks = []
-        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, xy.dtype, span):
+        for parts in tiles.candidate_chunks(boxes, H, W, tile_size, max_candidates, xy.dtype, span, overflow=overflow):
             cand = tiles.concat(parts)
             d2 = (cand.x - x.index_select(0, cand.prim)) ** 2 + (cand.y - y.index_select(0, cand.prim)) ** 2
             keep = torch.nonzero(d2 < r2).squeeze(1)

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..data.shapes import Meshes, PointClouds
-from . import accel, lod, mesh_raster, point_raster, shading, soft_search
+from ..data.shapes import Meshes, PointClouds, trusted
+from . import accel, budget, lod, mesh_raster, point_raster, shading, soft_search, tiles
 from .cameras import Cameras, camera_to_ndc, to_camera_packed
 from .config import RendererConfig
 from .ops import take, weighted3
@@ -81,9 +81,45 @@ class MultiViewRenderer(nn.Module):
         # depth order, barycentrics and blend weights would round wrongly there); float64 stays float64
         with torch.autocast(azim.device.type, enabled=False), accel.compiled(self.cfg.compile):
             shapes, azim, elev, dist = full_precision(shapes, azim, elev, dist)
-            if isinstance(shapes, Meshes):
-                return self._render_meshes(shapes, azim, elev, dist)
-            return self._render_points(shapes, azim, elev, dist)
+            return self._render(shapes, azim, elev, dist)
+
+    def _render(self, shapes, azim, elev, dist) -> RenderOutput:
+        """Shapes in groups within the memory budget (``render/budget.py``; one group when it fits),
+        each group's active pixels computed whole, then the images composed once."""
+        c = self.cfg
+        H = W = c.image_size
+        B, M = azim.shape
+        mesh = isinstance(shapes, Meshes)
+        stats = {}
+        if mesh and c.lod:
+            before = shapes.faces_per_shape.sum()
+            shapes = lod.simplify_meshes(shapes, lod.face_budget(c.image_size, c.lod_faces_per_row, c.lod_faces_per_pixel),
+                                         c.image_size, c.lod_min_iou)
+            stats["lod_faces"] = (before, shapes.faces_per_shape.sum())
+        ref = shapes.verts if mesh else shapes.points
+        kind = ("soft" if c.soft else "hard") if mesh else "points"
+        work = budget.plan(kind, shapes.faces_per_shape if mesh else shapes.points_per_shape, M, H, c.max_candidates,
+                           c.memory_budget_mb, ref.device)
+        overflow = None
+        if work.strict:
+            def overflow(n):
+                raise budget.BudgetTooSmall(budget.tile_too_large(work.budget_mb, kind, n))
+        draws = self._draws(B, ref) if mesh and c.shading != "silhouette" else None
+        parts = []
+        counts = host_counts(shapes) if len(work.groups) > 1 else None
+        for a, b in work.groups:
+            group = (shapes, azim, elev, dist, draws) if (a, b) == (0, B) else (
+                subset(shapes, a, b, counts), azim[a:b], elev[a:b], dist[a:b], None if draws is None else draws.part(a, b))
+            pixels = self._mesh_pixels if mesh else self._point_pixels
+            pix, rgb, alpha, part_stats = pixels(*group, work.max_candidates, overflow)
+            parts.append((pix + a * M * H * W if a else pix, rgb, alpha))
+            add_stats(stats, part_stats)
+        if len(parts) != 1:
+            parts = [tuple(torch.cat(t) for t in zip(*parts))] if parts else [
+                (ref.new_zeros(0, dtype=torch.long), ref.new_zeros(0, 3), ref.new_zeros(0))]
+        stats["groups"] = len(work.groups)
+        images, alpha = self._compose(*parts[0], B, M, H, W, ref)
+        return RenderOutput(images, alpha, stats)
 
     # ---------------------------------------------------------------- shared helpers
     def _cameras(self, azim, elev, dist) -> Cameras:
@@ -116,36 +152,31 @@ class MultiViewRenderer(nn.Module):
         a = torch.zeros(B * M * HW, dtype=ref.dtype, device=ref.device).index_copy_(0, pix, alpha)
         return img.view(B, M, 3, H, W), a.view(B, M, 1, H, W)
 
-    def _light_dirs(self, B, M, C, ref) -> torch.Tensor:
-        """Unit vectors towards the light, ``[B*M, 3]`` world."""
+    def _draws(self, B, ref) -> "Draws":
+        """The batch's light directions (unit ``[B, 3]`` world, None: towards each camera) and albedos
+        ``[B, 3]``, drawn once per call (random ones from torch's global generator, light first)."""
         mode = self.cfg.train_light if self.training else self.cfg.light
-        if mode == "camera":
-            return torch.nn.functional.normalize(C, dim=-1, eps=1e-12)
+        light = None
         if mode == "fixed":
             d = torch.tensor(self.cfg.light_direction, dtype=ref.dtype, device=ref.device)
-            return torch.nn.functional.normalize(d, dim=0, eps=1e-12).expand(B * M, 3)
-        d = torch.nn.functional.normalize(torch.randn(B, 3, dtype=ref.dtype).to(ref.device), dim=-1, eps=1e-12)
-        return d.repeat_interleave(M, 0)
-
-    def _shape_colors(self, B, ref) -> torch.Tensor:
+            light = torch.nn.functional.normalize(d, dim=0, eps=1e-12).expand(B, 3)
+        elif mode == "random":
+            light = torch.nn.functional.normalize(torch.randn(B, 3, dtype=ref.dtype).to(ref.device), dim=-1, eps=1e-12)
         mode = self.cfg.train_color if self.training else self.cfg.color
         if mode == "white":
-            return torch.ones(B, 3, dtype=ref.dtype, device=ref.device)
-        if mode == "fixed":
-            return torch.tensor(self.cfg.object_color, dtype=ref.dtype, device=ref.device).expand(B, 3)
-        return (0.25 + 0.75 * torch.rand(B, 3, dtype=ref.dtype)).to(ref.device)
+            albedo = torch.ones(B, 3, dtype=ref.dtype, device=ref.device)
+        elif mode == "fixed":
+            albedo = torch.tensor(self.cfg.object_color, dtype=ref.dtype, device=ref.device).expand(B, 3)
+        else:
+            albedo = (0.25 + 0.75 * torch.rand(B, 3, dtype=ref.dtype)).to(ref.device)
+        return Draws(light, albedo)
 
     # ---------------------------------------------------------------- meshes
-    def _render_meshes(self, meshes: Meshes, azim, elev, dist) -> RenderOutput:
+    def _mesh_pixels(self, meshes: Meshes, azim, elev, dist, draws, max_candidates, overflow):
+        """One group of meshes -> its active pixels: flat index ``[P]``, rgb ``[P, 3]``, alpha ``[P]``, stats."""
         c = self.cfg
         H = W = c.image_size
         B, M = azim.shape
-        stats = {}
-        if c.lod:
-            before = int(meshes.faces_per_shape.sum())
-            meshes = lod.simplify_meshes(meshes, lod.face_budget(c.image_size, c.lod_faces_per_row, c.lod_faces_per_pixel),
-                                         c.image_size, c.lod_min_iou)
-            stats["lod_faces"] = (before, int(meshes.faces_per_shape.sum()))
         verts = meshes.verts
         blur = c.effective_blur()
         K = c.effective_k()
@@ -155,22 +186,21 @@ class MultiViewRenderer(nn.Module):
         if c.soft:
             interior = self._interior_edges(meshes.faces, facing, M)
         ranking = self.soft_ranking(dist.to(verts.dtype), interior)
-        sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=c.max_candidates,
-                                       ranking=ranking)
-        stats.update(faces_alive=int(alive.sum()), face_views=len(alive), active_pixels=len(sel.pix), max_candidates=sel.most)
+        sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=max_candidates,
+                                       ranking=ranking, overflow=overflow)
+        stats = dict(faces_alive=alive.sum(), face_views=len(alive), active_pixels=len(sel.pix), max_candidates=sel.most)
         if c.soft:
-            rgb, alpha = self._soft_pixels(meshes, pf, sel, ranking, B, M, C, stats)
+            rgb, alpha = self._soft_pixels(meshes, pf, sel, ranking, draws, M, C, stats)
         else:
             frag = mesh_raster.face_fragments(pf, sel, H=H, W=W, need_bary=c.shading == "smooth", need_dist=False, interior_edge=None)
             if c.shading == "silhouette":
                 alpha = frag.valid[:, 0].to(verts.dtype)
                 rgb = alpha[:, None] + (1 - alpha[:, None]) * self._background(verts)
             else:
-                rgb, alpha = shading.hard_blend(self._face_colors(meshes, frag, B, M, C), frag.valid)
-        images, alpha = self._compose(sel.pix, rgb, alpha, B, M, H, W, verts)
-        return RenderOutput(images, alpha, stats)
+                rgb, alpha = shading.hard_blend(self._face_colors(meshes, frag, draws, M, C), frag.valid)
+        return sel.pix, rgb, alpha, stats
 
-    def _soft_pixels(self, meshes: Meshes, pf, sel, ranking, B, M, C, stats) -> tuple[torch.Tensor, torch.Tensor]:
+    def _soft_pixels(self, meshes: Meshes, pf, sel, ranking, draws, M, C, stats) -> tuple[torch.Tensor, torch.Tensor]:
         """Soft mode on the active pixels ``sel.pix`` ``[P]`` -> rgb ``[P, 3]``, alpha ``[P]``.
 
         Only the used slots are shaded (packed, one per row); coverage adds every other face within
@@ -189,7 +219,7 @@ class MultiViewRenderer(nn.Module):
         stats.update(slots=len(owner), rest_faces=0 if sel.rest_pix is None else len(sel.rest_pix))
         if c.shading == "silhouette":
             return alpha[:, None] + (1 - alpha[:, None]) * bg, alpha
-        colors = self._face_colors(meshes, frag, B, M, C)[:, 0]
+        colors = self._face_colors(meshes, frag, draws, M, C)[:, 0]
         image = take(torch.div(sel.pix, H * W, rounding_mode="floor"), owner)
         rgb = shading.softmax_blend(colors, frag.dist[:, 0], frag.zbuf[:, 0], owner, alpha, take(ranking.zfar, image),
                                     take(ranking.znear, image), bg, sigma=c.sigma, gamma=c.gamma)
@@ -237,14 +267,16 @@ class MultiViewRenderer(nn.Module):
         other = facing[nb_fv.clamp(min=0)]
         return (nb_fv >= 0) & (own != 0) & (other == own)
 
-    def _face_colors(self, meshes: Meshes, frag: mesh_raster.Fragments, B, M, C) -> torch.Tensor:
-        """Phong colour of every (active pixel, slot): ``[P, K, 3]``."""
+    def _face_colors(self, meshes: Meshes, frag: mesh_raster.Fragments, draws: "Draws", M, C) -> torch.Tensor:
+        """Phong colour of every (active pixel, slot): ``[P, K, 3]``; C: camera centres ``[B*M, 3]``."""
         c = self.cfg
         verts, faces = meshes.verts, meshes.faces
         fv = frag.fv.clamp(min=0)
         tri = take(verts, faces)  # [F, 3, 3]
         fn = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
-        lights, albedos = self._light_dirs(B, M, C, verts), self._shape_colors(B, verts)
+        lights = (torch.nn.functional.normalize(C, dim=-1, eps=1e-12) if draws.light is None
+                  else draws.light.repeat_interleave(M, 0))
+        albedos = draws.albedo
 
         def shade(fv_idx, normals, points):
             f = torch.div(fv_idx, M, rounding_mode="floor")
@@ -278,7 +310,8 @@ class MultiViewRenderer(nn.Module):
         return take(shade(which, take(fn, f), take(tri.mean(1), f)), slot_of)
 
     # ---------------------------------------------------------------- points
-    def _render_points(self, clouds: PointClouds, azim, elev, dist) -> RenderOutput:
+    def _point_pixels(self, clouds: PointClouds, azim, elev, dist, draws, max_candidates, overflow):
+        """One group of point clouds -> its active pixels: flat index ``[P]``, rgb ``[P, 3]``, alpha ``[P]``, stats."""
         c = self.cfg
         H = W = c.image_size
         B, M = azim.shape
@@ -288,12 +321,55 @@ class MultiViewRenderer(nn.Module):
         r = c.point_radius
         with torch.no_grad():
             alive = (z >= c.znear) & (xy.detach().abs() <= 1 + r).all(-1)
-        sel = point_raster.search_points(xy, z, image, alive, H=H, W=W, K=c.points_per_pixel, radius=r,
-                                         num_images=B * M, tile_size=c.tile_size, max_candidates=c.max_candidates)
+        sel = point_raster.search_points(xy, z, image, alive, H=H, W=W, K=c.points_per_pixel, radius=r, num_images=B * M,
+                                         tile_size=c.tile_size, max_candidates=max_candidates, overflow=overflow)
         slot, a = point_raster.point_alphas(xy, sel, H=H, W=W, radius=r, opacity=c.point_opacity)
         colors = None if clouds.colors is None else take(clouds.colors, sel.prim.reshape(-1).index_select(0, slot) // M)
         bg = self._background(pts)
         composite = shading.alpha_composite if c.compositor == "alpha" else shading.norm_weighted_composite
         rgb, alpha = composite(slot, a, len(sel.pix), sel.prim.shape[1], colors, bg)
-        images, alpha = self._compose(sel.pix, rgb, alpha, B, M, H, W, pts)
-        return RenderOutput(images, alpha, {"points_alive": int(alive.sum()), "active_pixels": len(sel.pix)})
+        return sel.pix, rgb, alpha, {"points_alive": alive.sum(), "active_pixels": len(sel.pix)}
+
+
+@dataclass
+class Draws:
+    """A call's light directions ``[B, 3]`` (None: towards each camera) and albedos ``[B, 3]``."""
+
+    light: torch.Tensor | None
+    albedo: torch.Tensor
+
+    def part(self, a: int, b: int) -> "Draws":
+        return Draws(None if self.light is None else self.light[a:b], self.albedo[a:b])
+
+
+def add_stats(total: dict, part: dict) -> None:
+    """Fold one group's counters into the call's: sums, and the largest ``max_candidates``."""
+    for key, value in part.items():
+        if key not in total:
+            total[key] = value
+        elif key == "max_candidates":
+            total[key] = tiles.largest([total[key], value])
+        else:
+            total[key] = total[key] + value
+
+
+def host_counts(shapes) -> tuple[list, ...]:
+    """The per-shape counts on the host (one read): (vertices, faces) of Meshes, (points,) of PointClouds."""
+    if isinstance(shapes, Meshes):
+        return tuple(torch.stack([shapes.verts_per_shape, shapes.faces_per_shape]).tolist())
+    return (shapes.points_per_shape.tolist(),)
+
+
+def subset(shapes, a: int, b: int, counts: tuple | None = None):
+    """Shapes ``a:b`` of packed Meshes or PointClouds; counts: ``host_counts(shapes)`` (read when None)."""
+    counts = counts or host_counts(shapes)
+    if isinstance(shapes, Meshes):
+        nv, nf = counts
+        v0, v1, f0, f1 = sum(nv[:a]), sum(nv[:b]), sum(nf[:a]), sum(nf[:b])
+        return trusted(Meshes, verts=shapes.verts[v0:v1], faces=shapes.faces[f0:f1] - v0,
+                              verts_per_shape=shapes.verts_per_shape[a:b], faces_per_shape=shapes.faces_per_shape[a:b],
+                              names=list(shapes.names[a:b]))
+    (n,) = counts
+    p0, p1 = sum(n[:a]), sum(n[:b])
+    return trusted(PointClouds, points=shapes.points[p0:p1], points_per_shape=shapes.points_per_shape[a:b],
+                          colors=None if shapes.colors is None else shapes.colors[p0:p1], names=list(shapes.names[a:b]))

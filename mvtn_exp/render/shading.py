@@ -89,20 +89,20 @@ def softmax_blend(colors, dist, zbuf, owner, alpha, zfar, znear, background, *, 
     return rgb.clamp(0, 1)  # clamp: rounding can exceed 1 by an ulp
 
 
-def _ranks(slot: torch.Tensor, K: int):
-    """Packed slots ``[S]`` (flat indices into ``[P, K]``, ascending) -> per rank k < K the
-    positions in ``slot`` of the slots of rank k, and their pixels (``[n_k]`` each). A pixel's slots
-    fill from rank 0 and lie side by side, so rank k's are its rank-0 position plus k, for the pixels
-    with more than k slots (one pass over the slots, then passes over the pixels)."""
+def _ranks(slot: torch.Tensor, K: int, P: int):
+    """Packed slots ``[S]`` (flat indices into ``[P, K]``, ascending; every one of the ``P`` pixels
+    has its rank-0 slot) -> per rank k the position in ``slot`` of each pixel's slot of rank k
+    ``[P]`` (clamped where it has none) and whether it has one ``[P]``. A pixel's slots fill from
+    rank 0 and lie side by side, so rank k's is its rank-0 position plus k. Dense over the pixels:
+    no data-dependent sizes, one host read (the most slots any pixel has)."""
     with torch.no_grad():
-        first = torch.nonzero(slot % K == 0).squeeze(1)
-        count = torch.diff(first, append=first.new_tensor([len(slot)]))
-        pix = torch.div(slot.index_select(0, first), K, rounding_mode="floor")
-    for k in range(K):
-        has = torch.nonzero(count > k).squeeze(1)
-        if len(has) == 0:
-            return
-        yield first.index_select(0, has) + k, pix.index_select(0, has)
+        pix = torch.div(slot, K, rounding_mode="floor")
+        count = torch.zeros(P, dtype=torch.long, device=slot.device).index_add_(0, pix, torch.ones_like(pix))
+        first = torch.cumsum(count, 0) - count
+        ranks = int(count.max()) if P else 0
+        last = max(len(slot) - 1, 0)
+    for k in range(ranks):
+        yield (first + k).clamp(max=last), count > k
 
 
 def _ones_on_graph(alpha: torch.Tensor, P: int) -> torch.Tensor:
@@ -114,15 +114,15 @@ def _ones_on_graph(alpha: torch.Tensor, P: int) -> torch.Tensor:
 def alpha_composite(slot, alpha, P: int, K: int, colors, background):
     """Front-to-back ``sum_k c_k a_k prod_{j<k}(1 - a_j)`` plus the background times transmittance,
     over packed slots: slot, alpha ``[S]`` (``point_raster.point_alphas``), colors ``[S, 3]`` or
-    None for white, background ``[3]``; ``P`` pixels of ``K`` slots. Rank by rank, so memory
-    follows the occupied slots, not ``P x K``."""
+    None for white, background ``[3]``; ``P`` pixels of ``K`` slots. Rank by rank over the pixels
+    (a pixel without a slot of that rank adds exactly 0 and keeps its transmittance)."""
     T = _ones_on_graph(alpha, P)  # transmittance before the rank being added
     lit = alpha.new_zeros(P, 1 if colors is None else 3)
-    for at, pix in _ranks(slot, K):
-        a, before = alpha.index_select(0, at), T.index_select(0, pix)
-        w = (a * before)[:, None]
-        lit = lit.index_add(0, pix, w if colors is None else w * colors.index_select(0, at))
-        T = T.index_copy(0, pix, before * (1 - a))
+    for at, has in _ranks(slot, K, P):
+        a = torch.where(has, alpha.index_select(0, at), 0.0)
+        w = (a * T)[:, None]
+        lit = lit + (w if colors is None else w * colors.index_select(0, at))
+        T = T * (1 - a)
     return lit + T[:, None] * background, 1 - T
 
 
@@ -136,8 +136,8 @@ def norm_weighted_composite(slot, alpha, P: int, K: int, colors, background):
     """
     pix = torch.div(slot, K, rounding_mode="floor")
     T = _ones_on_graph(alpha, P)
-    for at, p in _ranks(slot, K):
-        T = T.index_copy(0, p, T.index_select(0, p) * (1 - alpha.index_select(0, at)))
+    for at, has in _ranks(slot, K, P):
+        T = T * (1 - torch.where(has, alpha.index_select(0, at), 0.0))
     total = alpha.new_zeros(P).index_add(0, pix, alpha)
     lit = total[:, None] if colors is None else alpha.new_zeros(P, 3).index_add(0, pix, alpha[:, None] * colors)
     return (lit + T[:, None] * background) / (total + T)[:, None], 1 - T

@@ -85,7 +85,7 @@ class _Faces:
 
 
 def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int,
-           ranking: SoftRanking) -> tiles.Selection:
+           ranking: SoftRanking, overflow=None) -> tiles.Selection:
     """The soft search (see the module docstring) -> Selection with slots ``[P, K]`` and the rest."""
     with torch.no_grad():
         dilated = face_boxes(pf.cols, None, blur_radius, H, W)
@@ -97,7 +97,7 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
                        ranking.depth_logit(image, torch.minimum(torch.minimum(cols[2], cols[5]), cols[8])))
         dilated = tiles.PixelBoxes(image, *(t.index_select(0, fv) for t in (dilated.j0, dilated.j1, dilated.i0, dilated.i1)))
         num_pixels = pf.num_images * H * W
-        chunks = dict(H=H, W=W, tile_size=tile_size, max_candidates=max_candidates, dtype=cols.dtype)
+        chunks = dict(H=H, W=W, tile_size=tile_size, max_candidates=max_candidates, dtype=cols.dtype, overflow=overflow)
         if ranking.by_depth:
             pix, prim, depth, _ = _near(faces, dilated, blur_radius, None, ranking, chunks, keep_inside=True)
             return tiles.select_nearest(pix, depth, prim, K, num_pixels)
@@ -125,7 +125,9 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
         other = torch.nonzero(~slot_ok & rest_ok).squeeze(1)
         sel.rest_pix = torch.cat([sel.rest_pix, pix.index_select(0, other)])
         sel.rest_prim = torch.cat([sel.rest_prim, prim.index_select(0, other)])
-        sel.most = int(torch.bincount(pix).max()) if len(pix) else 0
+        # (a count per pixel, not bincount: no host sync; a 0-dim tensor, read when asked)
+        sel.most = torch.zeros(num_pixels, dtype=torch.int32, device=pix.device).index_add_(
+            0, pix, torch.ones_like(pix, dtype=torch.int32)).max() if len(pix) else 0
         return sel
 
 

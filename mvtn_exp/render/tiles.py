@@ -50,7 +50,8 @@ class Selection:
 
     pix: ``[P]`` flat pixel index, ascending; prim: ``[P, K]`` primitive index, -1 in unused slots.
     rest_pix, rest_prim: ``[R]`` the candidates that did not get a slot (only when asked for:
-    soft coverage counts them); most: the largest number of candidates any pixel had (0 if empty);
+    soft coverage counts them); most: the largest number of candidates any pixel had (0 if empty; a
+    0-dim tensor when counted on the device, read only when asked);
     base_log_miss: ``[P]`` soft coverage the search counted itself and left out of the slots and the
     rest, as a constant ``sum log(1 - p)`` (fully covered pixels: their covering faces' bound).
     """
@@ -59,7 +60,7 @@ class Selection:
     prim: torch.Tensor
     rest_pix: torch.Tensor | None = None
     rest_prim: torch.Tensor | None = None
-    most: int = 0
+    most: int | torch.Tensor = 0
     base_log_miss: torch.Tensor | None = None
 
     def occupied(self) -> torch.Tensor:
@@ -200,13 +201,16 @@ _warned_tile_budget = False
 
 
 def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_candidates: int, dtype=torch.float32,
-                     span=None, small_box: int = SMALL_BOX, by_primitive: bool = False) -> Iterator[tuple[Candidates, Candidates]]:
+                     span=None, small_box: int = SMALL_BOX, by_primitive: bool = False,
+                     overflow=None) -> Iterator[tuple[Candidates, Candidates]]:
     """Yield candidate chunks, each as (from whole boxes, from row spans) (see ``_enumerate``);
     every pixel's candidates lie in exactly one chunk.
 
     by_primitive: chunks are runs of consecutive primitives instead (a pixel's candidates may then
     span chunks): for a search whose per-chunk winners combine (``nearest_one``), it skips the
     binning into tiles, the dearest step of a dense scene.
+    overflow: called with the candidate count of a tile (or primitive box) over ``max_candidates``
+    (an explicit memory budget raises there); None: it is processed alone, with one warning.
     """
     global _warned_tile_budget
     sizes = boxes.sizes()
@@ -220,6 +224,8 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
     if by_primitive:
         ends = torch.cumsum(sizes.index_select(0, prim), 0)
         largest = int(sizes.max())
+        if largest > max_candidates and overflow is not None:
+            overflow(largest)
         if largest > max_candidates and not _warned_tile_budget:
             _warned_tile_budget = True
             warnings.warn(f"renderer: one primitive's box holds {largest} candidates, over the chunk budget "
@@ -239,10 +245,13 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
     pair_end = torch.cumsum(counts, 0)
     tile_cands = torch.zeros(len(uniq), dtype=torch.long, device=prim.device)
     tile_cands.index_add_(0, torch.repeat_interleave(torch.arange(len(uniq), device=prim.device), counts), pair_sizes)
-    if int(tile_cands.max()) > max_candidates and not _warned_tile_budget:
+    most = int(tile_cands.max())
+    if most > max_candidates and overflow is not None:
+        overflow(most)
+    if most > max_candidates and not _warned_tile_budget:
         _warned_tile_budget = True
         warnings.warn(
-            f"renderer: one {tile_size}px tile holds {int(tile_cands.max())} candidates, over the chunk budget "
+            f"renderer: one {tile_size}px tile holds {most} candidates, over the chunk budget "
             f"max_candidates={max_candidates}; it is processed alone (budget grown, nothing dropped). "
             "Lower tile_size or raise max_candidates to silence this.",
             RuntimeWarning,
@@ -310,7 +319,7 @@ def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K
         rest = ~keep if rest_mask is None else ~keep & rest_mask.index_select(0, order)
         rest = torch.nonzero(rest).squeeze(1)
         rest_pix, rest_prim = sp.index_select(0, rest), prim.index_select(0, order.index_select(0, rest))
-    return Selection(active, out.view(-1, K), rest_pix, rest_prim, int(rank.max()) + 1)
+    return Selection(active, out.view(-1, K), rest_pix, rest_prim, rank.max() + 1)
 
 
 def nearest_one(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, num_pixels: int):
@@ -327,6 +336,15 @@ def nearest_one(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, num_
     return active, zmin.index_select(0, active), best.index_select(0, active)
 
 
+def largest(values: list):
+    """The largest of ints and 0-dim tensors, without reading a tensor on the host."""
+    out = max((v for v in values if not torch.is_tensor(v)), default=0)
+    for v in values:
+        if torch.is_tensor(v):
+            out = torch.clamp(v, min=out) if not torch.is_tensor(out) else torch.maximum(out, v)
+    return out
+
+
 def merge(selections: list[Selection], K: int, device) -> Selection:
     """Concatenate chunk selections (chunks never share a pixel), sorted by pixel."""
     if not selections:
@@ -340,4 +358,4 @@ def merge(selections: list[Selection], K: int, device) -> Selection:
         rest_pix = torch.cat([s.rest_pix for s in selections])
         rest_prim = torch.cat([s.rest_prim for s in selections])
     return Selection(pix[order], torch.cat([s.prim for s in selections])[order], rest_pix, rest_prim,
-                     max(s.most for s in selections))
+                     largest([s.most for s in selections]))

@@ -1,0 +1,112 @@
+"""How much memory one render may hold: ``renderer.memory_budget_mb`` -> groups of shapes rendered
+one after another, and the candidate chunk of each group's search.
+
+A render holds three kinds of memory while it runs:
+- per image pixel: the dense per-pixel buffers of the search and the images themselves
+  (``PIXEL_BYTES``, for all M x H x W pixels of every shape of the group being searched);
+- per primitive-view (a face or point seen in one view): projected corners, face tables, culling
+  flags (``PRIM_BYTES``);
+- per candidate (a primitive-pixel pair the search enumerates): its indices, pixel centre and the
+  maths that tests it (``CANDIDATE_BYTES``), for one chunk of candidates at a time.
+
+With a budget, shapes are grouped so that a group's pixel and primitive state takes at most
+``FIXED_SHARE`` of it, and the rest bounds the candidates of one chunk. A group renders whole
+(search, then its differentiable pixels), so only the kept slots of finished groups, what the
+backward pass needs, stay while the next group is searched. Results do not depend on the grouping
+(each pixel belongs to one image, each image to one shape): hard and point images are identical,
+soft ones equal to float rounding.
+
+Without a budget (``memory_budget_mb=null``): on CUDA a budget of ``CUDA_SHARE`` of the memory
+free to this process is chosen at each call; on CPU nothing is grouped and the chunk is
+``renderer.max_candidates``, a size that suits CPU caches.
+
+The byte constants are measured peaks per unit (``mvtn-bench``'s budget rows check that a render
+stays within its budget), rounded up.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+# peak bytes per unit, by kind of render: the slope and intercept of a render's forward+backward
+# peak against its chunk size (CPU, 20k-face torus / 2,048 points, 12 x 224 px), rounded up.
+# Candidates are counted as the search budgets them: pixels of the primitives' (dilated) boxes
+PIXEL_BYTES = {"hard": 32, "soft": 320, "points": 80}
+PRIM_BYTES = {"hard": 40, "soft": 160, "points": 64}
+CANDIDATE_BYTES = {"hard": 64, "soft": 80, "points": 64}
+FIXED_SHARE = 0.5
+CUDA_SHARE = 0.25
+MiB = 1 << 20
+
+
+class BudgetTooSmall(ValueError):
+    """``renderer.memory_budget_mb`` cannot hold the smallest unit of work; names the smallest that can."""
+
+
+@dataclass
+class Plan:
+    """groups: ``[(start, stop)]`` consecutive shape ranges rendered one after another (one group
+    ``(0, B)`` when everything fits); max_candidates: the candidate chunk; budget_mb: the budget
+    planned for (None: no budget); strict: an explicit budget, refused when a tile overflows it."""
+
+    groups: list
+    max_candidates: int
+    budget_mb: float | None = None
+    strict: bool = False
+
+
+def available_mb(device: torch.device) -> float:
+    """Memory this process could still allocate on a CUDA ``device``, in MiB: the driver's free
+    memory plus what PyTorch's caching allocator holds but does not use."""
+    free, _ = torch.cuda.mem_get_info(device)
+    cached = torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
+    return (free + cached) / MiB
+
+
+def budget_mb(setting: float | None, device: torch.device) -> float | None:
+    """The budget a render plans for: the setting, else ``CUDA_SHARE`` of the available memory
+    on CUDA, else None (CPU: no budget, chunks of ``max_candidates``)."""
+    if setting is not None:
+        return float(setting)
+    if device.type == "cuda":
+        return CUDA_SHARE * available_mb(device)
+    return None
+
+
+def plan(kind: str, prims_per_shape: torch.Tensor, views: int, image_size: int, max_candidates: int,
+         setting: float | None, device: torch.device) -> Plan:
+    """The groups and chunk of a render of ``kind`` (hard | soft | points) of shapes with
+    ``prims_per_shape`` ``[B]`` faces or points each, ``views`` views of ``image_size`` px.
+    Reads the counts on the host once when there is a budget (none otherwise)."""
+    B = len(prims_per_shape)
+    budget = budget_mb(setting, device)
+    if budget is None:
+        return Plan([(0, B)] if B else [], max_candidates)
+    per_pixel = views * image_size * image_size * PIXEL_BYTES[kind]
+    fixed = [per_pixel + n * views * PRIM_BYTES[kind] for n in prims_per_shape.tolist()]
+    room = FIXED_SHARE * budget * MiB
+    if fixed and max(fixed) > room:
+        need = math.ceil(max(fixed) / FIXED_SHARE / MiB)
+        raise BudgetTooSmall(f"renderer.memory_budget_mb={budget:g}: one shape's {views} views of {image_size} px "
+                             f"({max(prims_per_shape.tolist())} primitives) need {need} MiB at least; set "
+                             f"renderer.memory_budget_mb >= {need} (or null: automatic)")
+    groups, start, used = [], 0, 0.0
+    for b, f in enumerate(fixed):
+        if b > start and used + f > room:
+            groups.append((start, b))
+            start, used = b, 0.0
+        used += f
+    if B:
+        groups.append((start, B))
+    chunk = max(1, int((1 - FIXED_SHARE) * budget * MiB / CANDIDATE_BYTES[kind]))
+    return Plan(groups, chunk, budget, strict=setting is not None)
+
+
+def tile_too_large(plan_or_budget: float | None, kind: str, candidates: int) -> str:
+    """The one-line refusal when one tile's ``candidates`` exceed an explicit budget's chunk."""
+    need = math.ceil(candidates * CANDIDATE_BYTES[kind] / (1 - FIXED_SHARE) / MiB)
+    return (f"renderer.memory_budget_mb={plan_or_budget:g}: one screen tile holds {candidates} candidate pairs, "
+            f"which need {need} MiB at least; set renderer.memory_budget_mb >= {need}, lower "
+            "renderer.tile_size, or null (automatic)")
