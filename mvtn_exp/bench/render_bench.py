@@ -544,7 +544,7 @@ def targets(bench: Bench) -> list[dict]:
                        f"<= {factor:g} x ({factor * net_ms:.1f} ms)", ratio <= factor, value=ratio, limit=factor)
 
     out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, K=1: fwd+bwd vs ResNet-18 fwd+bwd on {M} images", "hard",
-                         bench.find_grid("torus-20k", S, M, 1), 0.25))
+                         bench.find_grid("torus-20k", S, M, 1), 0.15))
     for shading, factor in (("smooth", 1.0), ("flat", 1.0)):
         out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
                              shading, bench.find_grid("torus-20k", S, M, 8, shading), factor))

@@ -184,7 +184,7 @@ class MultiViewRenderer(nn.Module):
         alive, facing = pf.alive, pf.facing
         interior = None
         if c.soft:
-            interior = self._interior_edges(meshes.faces, facing, M)
+            interior = self._interior_edges(meshes.faces, facing, M, len(meshes.verts))
         ranking = self.soft_ranking(dist.to(verts.dtype), interior)
         sel = mesh_raster.search_faces(pf, H=H, W=W, K=K, blur_radius=blur, tile_size=c.tile_size, max_candidates=max_candidates,
                                        ranking=ranking, overflow=overflow)
@@ -259,9 +259,9 @@ class MultiViewRenderer(nn.Module):
         pf = mesh_raster.ProjectedFaces(cols, alive, facing, xy, z, meshes.faces, meshes.shape_of_face(), M, B * M)
         return pf, cams, C.reshape(B * M, 3)
 
-    def _interior_edges(self, faces, facing, M) -> torch.Tensor:
+    def _interior_edges(self, faces, facing, M, num_verts: int | None = None) -> torch.Tensor:
         """``[F*M, 3]`` True where the neighbour across an edge is alive and faces the same way."""
-        nb = edge_neighbours(faces)  # [F, 3]
+        nb = edge_neighbours(faces, num_verts)  # [F, 3]
         nb_fv = (nb[:, None, :] * M + torch.arange(M, device=faces.device)[None, :, None]).reshape(-1, 3)
         own = facing.unsqueeze(1)
         other = facing[nb_fv.clamp(min=0)]

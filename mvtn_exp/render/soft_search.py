@@ -185,7 +185,7 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
     out = []
     r2 = radius**2
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
-        for cand in parts:  # (not concatenated: a copy of every candidate for nothing)
+        for cand in (tiles.concat(parts),):  # (one pass over both parts: half the kernels and host reads)
             hb = hidden_below
             if hb is not None and not accel.enabled():
                 # eager: drop the hidden candidates before the maths (compiled, one fused loop tests them)

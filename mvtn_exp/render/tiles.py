@@ -106,8 +106,17 @@ def columns(xlo: torch.Tensor, xhi: torch.Tensor, W: int) -> tuple[torch.Tensor,
             torch.floor(((xhi + 1) * W - 1) / 2).clamp(-1, W).long())
 
 
+def _counts(boxes: PixelBoxes, sel: torch.Tensor, small_box: int) -> list[int]:
+    """One host read for the boxes ``sel``: [candidates in all, boxes of at most ``small_box``
+    pixels, their candidates, the rows of the larger ones]."""
+    sizes = boxes.sizes().index_select(0, sel)
+    small = sizes <= small_box
+    rows = (boxes.i1.index_select(0, sel) - boxes.i0.index_select(0, sel) + 1).clamp(min=0)
+    return torch.stack([sizes.sum(), small.sum(), (sizes * small).sum(), (rows * ~small).sum()]).tolist()
+
+
 def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner=None,
-               small_box=SMALL_BOX) -> tuple[Candidates, Candidates]:
+               small_box=SMALL_BOX, counts: list[int] | None = None) -> tuple[Candidates, Candidates]:
     """Pixel centres of the boxes ``sel``: (from whole boxes, from row spans).
 
     span: optional ``span(prim [R], y [R]) -> (j0, j1)``: per box row at NDC height y, the
@@ -116,12 +125,19 @@ def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype
     skipped (a hole, ``mesh_raster.row_spans``). Boxes of at most ``small_box`` pixels skip it and are enumerated
     whole: there the row pass would cost more than the candidates it saves.
     owner: maps box index -> primitive index (tile-clipped boxes); identity when None.
+    counts: ``_counts(boxes, sel, small_box)`` when the caller has read them (else read here, once).
+    Host syncs: that read, and the row spans' candidate count.
     """
+    total, n_small, small_total, large_rows = counts or _counts(boxes, sel, small_box)
     if span is None:
-        return _enumerate_boxes(boxes, sel, H, W, dtype, owner), _enumerate_boxes(boxes, sel[:0], H, W, dtype, owner)
+        return (_enumerate_boxes(boxes, sel, H, W, dtype, owner, total),
+                _enumerate_boxes(boxes, sel[:0], H, W, dtype, owner, 0))
     small = boxes.sizes().index_select(0, sel) <= small_box
-    return (_enumerate_boxes(boxes, sel[small], H, W, dtype, owner),
-            _enumerate_rows(boxes, sel[~small], H, W, span, dtype, owner))
+    # small boxes first, then the others, each in their order (a partition without a host read)
+    dest = torch.where(small, torch.cumsum(small, 0) - 1, n_small + torch.cumsum(~small, 0) - 1)
+    parted = torch.empty_like(sel).index_copy_(0, dest, sel)
+    return (_enumerate_boxes(boxes, parted[:n_small], H, W, dtype, owner, small_total),
+            _enumerate_rows(boxes, parted[n_small:], H, W, span, dtype, owner, large_rows))
 
 
 def concat(parts: tuple[Candidates, ...]) -> Candidates:
@@ -129,12 +145,13 @@ def concat(parts: tuple[Candidates, ...]) -> Candidates:
 
 
 @fused
-def _enumerate_boxes(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, dtype, owner) -> Candidates:
+def _enumerate_boxes(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, dtype, owner, total: int) -> Candidates:
+    """Every pixel centre of the boxes ``sel`` (``total`` of them)."""
     dev = sel.device
     j0, i0 = boxes.j0.index_select(0, sel), boxes.i0.index_select(0, sel)
     w = (boxes.j1.index_select(0, sel) - j0 + 1).clamp(min=0)
     n = w * (boxes.i1.index_select(0, sel) - i0 + 1).clamp(min=0)
-    own = torch.repeat_interleave(torch.arange(len(sel), device=dev), n)
+    own = torch.repeat_interleave(torch.arange(len(sel), device=dev), n, output_size=total)
     local = torch.arange(len(own), device=dev) - (torch.cumsum(n, 0) - n).index_select(0, own)
     wo = w.index_select(0, own)
     di = torch.div(local, wo, rounding_mode="floor")
@@ -147,11 +164,12 @@ def _enumerate_boxes(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, dtype
 
 
 @fused
-def _enumerate_rows(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner) -> Candidates:
+def _enumerate_rows(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner, rows: int) -> Candidates:
+    """The pixel centres of the boxes ``sel`` (``rows`` box rows in all) that ``span`` keeps."""
     dev = sel.device
     i0 = boxes.i0.index_select(0, sel)
     nrows = (boxes.i1.index_select(0, sel) - i0 + 1).clamp(min=0)
-    rown = torch.repeat_interleave(torch.arange(len(sel), device=dev), nrows)
+    rown = torch.repeat_interleave(torch.arange(len(sel), device=dev), nrows, output_size=rows)
     i = (i0 - (torch.cumsum(nrows, 0) - nrows)).index_select(0, rown) + torch.arange(len(rown), device=dev)
     b = sel.index_select(0, rown)
     p = b if owner is None else owner.index_select(0, b)
@@ -214,13 +232,14 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
     """
     global _warned_tile_budget
     sizes = boxes.sizes()
+    every = torch.arange(len(sizes), device=sizes.device)
+    counts = _counts(boxes, every, small_box)  # (empty boxes add no candidate: no need to drop them first)
+    if counts[0] == 0:
+        return
+    if counts[0] <= max_candidates:
+        yield _enumerate(boxes, every, H, W, span, dtype, None, small_box, counts)
+        return
     prim = torch.nonzero(sizes > 0).squeeze(1)
-    if len(prim) == 0:
-        return
-    total = int(sizes[prim].sum())
-    if total <= max_candidates:
-        yield _enumerate(boxes, prim, H, W, span, dtype, None, small_box)
-        return
     if by_primitive:
         ends = torch.cumsum(sizes.index_select(0, prim), 0)
         largest = int(sizes.max())

@@ -4,11 +4,11 @@ from __future__ import annotations
 import torch
 
 
-def edge_neighbours(faces: torch.Tensor) -> torch.Tensor:
+def edge_neighbours(faces: torch.Tensor, num_verts: int | None = None) -> torch.Tensor:
     """Neighbour face across each edge. faces ``[F, 3]`` (global vertex indices) -> ``[F, 3]`` long.
 
     Edge i of a face is the one opposite vertex i: (v1, v2), (v2, v0), (v0, v1). -1 where the edge
-    is a border. On non-manifold edges (three or more faces) faces are paired in index order.
+    is a border. num_verts: more than the largest vertex index (read from ``faces`` when None). On non-manifold edges (three or more faces) faces are paired in index order.
     """
     F_ = len(faces)
     out = torch.full((F_, 3), -1, dtype=torch.long, device=faces.device)
@@ -17,7 +17,8 @@ def edge_neighbours(faces: torch.Tensor) -> torch.Tensor:
     a = faces[:, [1, 2, 0]].reshape(-1)
     b = faces[:, [2, 0, 1]].reshape(-1)
     lo, hi = torch.minimum(a, b), torch.maximum(a, b)
-    key = lo * (int(faces.max()) + 1) + hi
+    # (num_verts: any bound above every index, given to spare a host read of the largest one)
+    key = lo * (num_verts if num_verts is not None else int(faces.max()) + 1) + hi
     order = torch.sort(key, stable=True).indices
     k = key[order]
     same = k[1:] == k[:-1]
