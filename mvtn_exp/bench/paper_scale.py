@@ -12,6 +12,7 @@ Rows (``mvtn-bench paper_scale=true``; on by default on CUDA):
 """
 from __future__ import annotations
 
+import contextlib
 import gc
 import time
 
@@ -31,6 +32,18 @@ OP_LIMIT = {"hard": 800, "soft": 2500, "points": 500}
 SYNC_LIMIT = 20
 SLOWER_LIMIT = 1.10  # with a budget at most 10% slower per shape than without
 GPU_MS_LIMIT = {"hard": 5.0, "soft": 20.0, "points": 3.0}  # per shape, fwd+bwd, on a GPU
+
+
+@contextlib.contextmanager
+def scale(batch: int, views: int, size: int):
+    """Within the block the rows run at another scale (the device check's dry run: a few seconds)."""
+    global BATCH, VIEWS, SIZE
+    old = BATCH, VIEWS, SIZE
+    BATCH, VIEWS, SIZE = batch, views, size
+    try:
+        yield
+    finally:
+        BATCH, VIEWS, SIZE = old
 
 
 def scene(kind: str, B: int, device) -> Meshes | PointClouds:
@@ -86,8 +99,9 @@ class _Null:
         return False
 
 
-def resnet_ms_per_shape(B: int, device, seed: int = 0) -> float:
-    """ResNet-18 forward+backward on B x 12 random images of 224 px (one warm-up), ms per shape."""
+def resnet_ms_per_shape(B: int, device, seed: int = 0, bf16: bool = False) -> float:
+    """ResNet-18 forward+backward on B x 12 random images of 224 px (one warm-up), ms per shape;
+    ``bf16``: its forward under bfloat16 autocast."""
     from ..models.backbones import resnet18
 
     torch.manual_seed(seed)
@@ -96,7 +110,9 @@ def resnet_ms_per_shape(B: int, device, seed: int = 0) -> float:
 
     def step():
         net.zero_grad(set_to_none=True)
-        net(x).sum().backward()
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+            y = net(x)
+        y.float().sum().backward()
 
     step()
     _sync(device)
@@ -106,19 +122,22 @@ def resnet_ms_per_shape(B: int, device, seed: int = 0) -> float:
     return 1000 * (time.perf_counter() - t0) / B
 
 
-def measure(device, batches=(8, BATCH), progress=None) -> dict:
-    """Every row of the module docstring: ``{"counts": [...], "budget": [...], "resnet_ms": float}``."""
-    out = {"counts": [], "budget": [], "resnet_ms": None}
+def measure(device, batches=None, progress=None, resnet_bf16: bool = False, budget_rows: bool = True) -> dict:
+    """Every row of the module docstring: ``{"counts": [...], "budget": [...], "resnet_ms": float}``
+    (``batches``: of the counted rows, default 8 and ``BATCH``; ``budget_rows``: the rows with and
+    without a budget, else the time without one only; ``resnet_bf16``: ResNet-18 under bf16 autocast)."""
+    out = {"counts": [], "budget": [], "resnet_ms": None, "resnet_bf16": resnet_bf16,
+           "scale": dict(batch=BATCH, views=VIEWS, size=SIZE)}
     for kind in MODES:
-        for B in batches:
+        for B in batches or (8, BATCH):
             _note(progress, f"paper scale: {kind} B={B} counted")
             out["counts"].append(call(kind, B, CUDA_80GB_MB, device, count=True))
     for kind in MODES:
-        for limit in (BUDGET_MB[kind], None):
+        for limit in ((BUDGET_MB[kind], None) if budget_rows else (None,)):
             _note(progress, f"paper scale: {kind} B={BATCH} budget {limit}")
             out["budget"].append(call(kind, BATCH, limit, device, count=False))
     _note(progress, "paper scale: ResNet-18")
-    out["resnet_ms"] = resnet_ms_per_shape(BATCH, device)
+    out["resnet_ms"] = resnet_ms_per_shape(BATCH, device, bf16=resnet_bf16)
     return out
 
 

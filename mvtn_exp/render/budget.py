@@ -9,10 +9,13 @@ A render holds three kinds of memory while it runs:
 - per candidate (a primitive-pixel pair the search enumerates): its indices, pixel centre and the
   maths that tests it (``CANDIDATE_BYTES``), for one chunk of candidates at a time.
 
-With a budget, shapes are grouped so that a group's pixel and primitive state takes at most
-``FIXED_SHARE`` of it, and the rest bounds the candidates of one chunk. A group renders whole
-(search, then its differentiable pixels), so only the kept slots of finished groups, what the
-backward pass needs, stay while the next group is searched. Results do not depend on the grouping
+With a budget, shapes are grouped so that a group's pixel and primitive state, with what the
+backward pass keeps of every group (``SAVED_BYTES`` per pixel), takes at most ``FIXED_SHARE`` of
+it, and the rest bounds the candidates of one chunk. A group renders whole (search, then its
+differentiable pixels), so only what the backward pass needs of finished groups stays while the
+next group is searched. When that alone would take more than half the share, each group keeps
+only its selection (``KEPT_BYTES``) and its differentiable part is computed again in the backward
+pass (``Plan.recompute``: ``torch.utils.checkpoint``): less memory for more time. Results do not depend on the grouping
 (each pixel belongs to one image, each image to one shape): hard and point images are identical,
 soft ones equal to float rounding.
 
@@ -36,8 +39,12 @@ import torch
 PIXEL_BYTES = {"hard": 32, "soft": 320, "points": 80}
 PRIM_BYTES = {"hard": 40, "soft": 160, "points": 64}
 CANDIDATE_BYTES = {"hard": 64, "soft": 80, "points": 64}
+# per image pixel, what the backward pass keeps of a group (its differentiable slots), and what it
+# keeps when the group is recomputed in the backward pass instead (the selection and the outputs)
+SAVED_BYTES = {"hard": 24, "soft": 400, "points": 48}
+KEPT_BYTES = {"hard": 24, "soft": 64, "points": 24}
 FIXED_SHARE = 0.5
-CUDA_SHARE = 0.25
+CUDA_SHARE = 0.5
 MiB = 1 << 20
 
 
@@ -49,12 +56,15 @@ class BudgetTooSmall(ValueError):
 class Plan:
     """groups: ``[(start, stop)]`` consecutive shape ranges rendered one after another (one group
     ``(0, B)`` when everything fits); max_candidates: the candidate chunk; budget_mb: the budget
-    planned for (None: no budget); strict: an explicit budget, refused when a tile overflows it."""
+    planned for (None: no budget); strict: an explicit budget, refused when a tile overflows it;
+    recompute: what the backward pass needs of every group would not fit beside a group being
+    searched, so each group's differentiable part is computed again in the backward pass."""
 
     groups: list
     max_candidates: int
     budget_mb: float | None = None
     strict: bool = False
+    recompute: bool = False
 
 
 def available_mb(device: torch.device) -> float:
@@ -84,13 +94,18 @@ def plan(kind: str, prims_per_shape: torch.Tensor, views: int, image_size: int, 
     budget = budget_mb(setting, device)
     if budget is None:
         return Plan([(0, B)] if B else [], max_candidates)
-    per_pixel = views * image_size * image_size * PIXEL_BYTES[kind]
-    fixed = [per_pixel + n * views * PRIM_BYTES[kind] for n in prims_per_shape.tolist()]
-    room = FIXED_SHARE * budget * MiB
+    pixels = views * image_size * image_size
+    prims = prims_per_shape.tolist()
+    share = FIXED_SHARE * budget * MiB
+    # what the backward pass keeps of every group; recomputed groups keep only their selection
+    recompute = B * pixels * SAVED_BYTES[kind] > share / 2
+    room = share - B * pixels * (KEPT_BYTES if recompute else SAVED_BYTES)[kind]
+    fixed = [pixels * (PIXEL_BYTES[kind] + (SAVED_BYTES[kind] if recompute else 0)) + n * views * PRIM_BYTES[kind]
+             for n in prims]
     if fixed and max(fixed) > room:
-        need = math.ceil(max(fixed) / FIXED_SHARE / MiB)
+        need = math.ceil((max(fixed) + B * pixels * KEPT_BYTES[kind]) / FIXED_SHARE / MiB)
         raise BudgetTooSmall(f"renderer.memory_budget_mb={budget:g}: one shape's {views} views of {image_size} px "
-                             f"({max(prims_per_shape.tolist())} primitives) need {need} MiB at least; set "
+                             f"({max(prims)} primitives, {B} in the batch) need {need} MiB at least; set "
                              f"renderer.memory_budget_mb >= {need} (or null: automatic)")
     groups, start, used = [], 0, 0.0
     for b, f in enumerate(fixed):
@@ -101,7 +116,7 @@ def plan(kind: str, prims_per_shape: torch.Tensor, views: int, image_size: int, 
     if B:
         groups.append((start, B))
     chunk = max(1, int((1 - FIXED_SHARE) * budget * MiB / CANDIDATE_BYTES[kind]))
-    return Plan(groups, chunk, budget, strict=setting is not None)
+    return Plan(groups, chunk, budget, strict=setting is not None, recompute=recompute)
 
 
 def tile_too_large(plan_or_budget: float | None, kind: str, candidates: int) -> str:

@@ -79,7 +79,7 @@ class RendererConfig:
     # search
     tile_size: int = 32
     # how much memory one render may hold at once (render/budget.py): shapes are rendered in groups
-    # and candidates searched in chunks that fit; null: a quarter of the memory free to the process
+    # and candidates searched in chunks that fit; null: half the memory free to the process
     # on CUDA, and on CPU no grouping, chunks of max_candidates (a size that suits CPU caches)
     memory_budget_mb: Optional[float] = None
     max_candidates: int = 1 << 21

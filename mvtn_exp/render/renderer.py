@@ -6,11 +6,13 @@ without blur, no barycentrics for flat shading, nothing for pixels no primitive 
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 from ..data.shapes import Meshes, PointClouds, trusted
 from . import accel, budget, lod, mesh_raster, point_raster, shading, soft_search, tiles
@@ -111,13 +113,13 @@ class MultiViewRenderer(nn.Module):
             group = (shapes, azim, elev, dist, draws) if (a, b) == (0, B) else (
                 subset(shapes, a, b, counts), azim[a:b], elev[a:b], dist[a:b], None if draws is None else draws.part(a, b))
             pixels = self._mesh_pixels if mesh else self._point_pixels
-            pix, rgb, alpha, part_stats = pixels(*group, work.max_candidates, overflow)
+            pix, rgb, alpha, part_stats = pixels(*group, work.max_candidates, overflow, work.recompute)
             parts.append((pix + a * M * H * W if a else pix, rgb, alpha))
             add_stats(stats, part_stats)
         if len(parts) != 1:
             parts = [tuple(torch.cat(t) for t in zip(*parts))] if parts else [
                 (ref.new_zeros(0, dtype=torch.long), ref.new_zeros(0, 3), ref.new_zeros(0))]
-        stats["groups"] = len(work.groups)
+        stats.update(groups=len(work.groups), recomputed=work.recompute)
         images, alpha = self._compose(*parts[0], B, M, H, W, ref)
         return RenderOutput(images, alpha, stats)
 
@@ -172,15 +174,18 @@ class MultiViewRenderer(nn.Module):
         return Draws(light, albedo)
 
     # ---------------------------------------------------------------- meshes
-    def _mesh_pixels(self, meshes: Meshes, azim, elev, dist, draws, max_candidates, overflow):
-        """One group of meshes -> its active pixels: flat index ``[P]``, rgb ``[P, 3]``, alpha ``[P]``, stats."""
+    def _mesh_pixels(self, meshes: Meshes, azim, elev, dist, draws, max_candidates, overflow, recompute=False):
+        """One group of meshes -> its active pixels: flat index ``[P]``, rgb ``[P, 3]``, alpha ``[P]``, stats.
+        recompute: keep nothing of the differentiable part for the backward pass but the selection;
+        it is computed again there (``torch.utils.checkpoint``; the budget asks for it)."""
         c = self.cfg
         H = W = c.image_size
         B, M = azim.shape
         verts = meshes.verts
         blur = c.effective_blur()
         K = c.effective_k()
-        pf, _, C = self.project_faces(meshes, azim, elev, dist)
+        with torch.no_grad() if recompute else contextlib.nullcontext():
+            pf, _, C = self.project_faces(meshes, azim, elev, dist)
         alive, facing = pf.alive, pf.facing
         interior = None
         if c.soft:
@@ -190,17 +195,33 @@ class MultiViewRenderer(nn.Module):
                                        ranking=ranking, overflow=overflow)
         stats = dict(faces_alive=alive.sum(), face_views=len(alive), active_pixels=len(sel.pix), max_candidates=sel.most)
         if c.soft:
-            rgb, alpha = self._soft_pixels(meshes, pf, sel, ranking, draws, M, C, stats)
-        else:
-            frag = mesh_raster.face_fragments(pf, sel, H=H, W=W, need_bary=c.shading == "smooth", need_dist=False, interior_edge=None)
-            if c.shading == "silhouette":
-                alpha = frag.valid[:, 0].to(verts.dtype)
-                rgb = alpha[:, None] + (1 - alpha[:, None]) * self._background(verts)
-            else:
-                rgb, alpha = shading.hard_blend(self._face_colors(meshes, frag, draws, M, C), frag.valid)
+            stats.update(slots=(sel.prim >= 0).sum(), rest_faces=0 if sel.rest_pix is None else len(sel.rest_pix))
+        if not recompute:
+            rgb, alpha = self._mesh_shade(meshes, pf, C, sel, ranking, draws, M)
+            return sel.pix, rgb, alpha, stats
+
+        def shade(azim, elev, dist):  # run again in the backward pass: nothing of it is kept until then
+            pf, _, C = self.project_faces(meshes, azim, elev, dist)
+            return self._mesh_shade(meshes, pf, C, sel, self.soft_ranking(dist.to(verts.dtype), interior), draws, M)
+
+        rgb, alpha = checkpoint(shade, azim, elev, dist, use_reentrant=False, preserve_rng_state=False)
         return sel.pix, rgb, alpha, stats
 
-    def _soft_pixels(self, meshes: Meshes, pf, sel, ranking, draws, M, C, stats) -> tuple[torch.Tensor, torch.Tensor]:
+    def _mesh_shade(self, meshes: Meshes, pf, C, sel, ranking, draws, M) -> tuple[torch.Tensor, torch.Tensor]:
+        """The differentiable part of a group of meshes: rgb ``[P, 3]`` and alpha ``[P]`` of the
+        selected pixels ``sel`` from the projected faces ``pf`` and camera centres C ``[B*M, 3]``."""
+        c = self.cfg
+        H = W = c.image_size
+        verts = meshes.verts
+        if c.soft:
+            return self._soft_pixels(meshes, pf, sel, ranking, draws, M, C)
+        frag = mesh_raster.face_fragments(pf, sel, H=H, W=W, need_bary=c.shading == "smooth", need_dist=False, interior_edge=None)
+        if c.shading == "silhouette":
+            alpha = frag.valid[:, 0].to(verts.dtype)
+            return alpha[:, None] + (1 - alpha[:, None]) * self._background(verts), alpha
+        return shading.hard_blend(self._face_colors(meshes, frag, draws, M, C), frag.valid)
+
+    def _soft_pixels(self, meshes: Meshes, pf, sel, ranking, draws, M, C) -> tuple[torch.Tensor, torch.Tensor]:
         """Soft mode on the active pixels ``sel.pix`` ``[P]`` -> rgb ``[P, 3]``, alpha ``[P]``.
 
         Only the used slots are shaded (packed, one per row); coverage adds every other face within
@@ -216,7 +237,6 @@ class MultiViewRenderer(nn.Module):
         miss = shading.log_miss(frag.dist[:, 0], owner, P, c.sigma)
         miss = miss + soft_search.rest_log_miss(pf, sel, miss, ranking, H=H, W=W)
         alpha = shading.coverage(miss)
-        stats.update(slots=len(owner), rest_faces=0 if sel.rest_pix is None else len(sel.rest_pix))
         if c.shading == "silhouette":
             return alpha[:, None] + (1 - alpha[:, None]) * bg, alpha
         colors = self._face_colors(meshes, frag, draws, M, C)[:, 0]
@@ -310,8 +330,9 @@ class MultiViewRenderer(nn.Module):
         return take(shade(which, take(fn, f), take(tri.mean(1), f)), slot_of)
 
     # ---------------------------------------------------------------- points
-    def _point_pixels(self, clouds: PointClouds, azim, elev, dist, draws, max_candidates, overflow):
-        """One group of point clouds -> its active pixels: flat index ``[P]``, rgb ``[P, 3]``, alpha ``[P]``, stats."""
+    def _point_pixels(self, clouds: PointClouds, azim, elev, dist, draws, max_candidates, overflow, recompute=False):
+        """One group of point clouds -> its active pixels: flat index ``[P]``, rgb ``[P, 3]``, alpha ``[P]``, stats
+        (``recompute``: as ``_mesh_pixels``)."""
         c = self.cfg
         H = W = c.image_size
         B, M = azim.shape
@@ -323,12 +344,16 @@ class MultiViewRenderer(nn.Module):
             alive = (z >= c.znear) & (xy.detach().abs() <= 1 + r).all(-1)
         sel = point_raster.search_points(xy, z, image, alive, H=H, W=W, K=c.points_per_pixel, radius=r, num_images=B * M,
                                          tile_size=c.tile_size, max_candidates=max_candidates, overflow=overflow)
-        slot, a = point_raster.point_alphas(xy, sel, H=H, W=W, radius=r, opacity=c.point_opacity)
-        colors = None if clouds.colors is None else take(clouds.colors, sel.prim.reshape(-1).index_select(0, slot) // M)
-        bg = self._background(pts)
-        composite = shading.alpha_composite if c.compositor == "alpha" else shading.norm_weighted_composite
-        rgb, alpha = composite(slot, a, len(sel.pix), sel.prim.shape[1], colors, bg)
-        return sel.pix, rgb, alpha, {"points_alive": alive.sum(), "active_pixels": len(sel.pix)}
+        stats = {"points_alive": alive.sum(), "active_pixels": len(sel.pix)}
+
+        def shade(xy):
+            slot, a = point_raster.point_alphas(xy, sel, H=H, W=W, radius=r, opacity=c.point_opacity)
+            colors = None if clouds.colors is None else take(clouds.colors, sel.prim.reshape(-1).index_select(0, slot) // M)
+            composite = shading.alpha_composite if c.compositor == "alpha" else shading.norm_weighted_composite
+            return composite(slot, a, len(sel.pix), sel.prim.shape[1], colors, self._background(pts))
+
+        rgb, alpha = checkpoint(shade, xy, use_reentrant=False, preserve_rng_state=False) if recompute else shade(xy)
+        return sel.pix, rgb, alpha, stats
 
 
 @dataclass
