@@ -238,7 +238,9 @@ class TrainConfig:
     ``threads``: torch's CPU threads for this process (null: torch's default, or under the joblib
     launcher the cores divided by the jobs that run at once); ``precision``: fp32, or autocast of
     the multi-view network C in bf16 or fp16 (CUDA only; G and the renderer stay float32:
-    ``models/precision.py``); ``overwrite``: a new run may replace the run in its ``hydra.run.dir``
+    ``models/precision.py``); ``deterministic``: torch's deterministic algorithms for the whole run
+    and ``renderer.deterministic`` (repeatable CUDA runs, at a cost: ``engine/seeding.deterministic``);
+    ``overwrite``: a new run may replace the run in its ``hydra.run.dir``
     (one holding a ``last.pt``; else refused: ``engine/run_dir.py``); ``sync_bn``: with several
     processes (torchrun), BatchNorm statistics over the whole global batch (``models/sync_bn.py``;
     false: each process over its own share, as plain DDP); no effect in one process.
@@ -257,6 +259,7 @@ class TrainConfig:
     ckpt_path: Optional[str] = None
     threads: Optional[int] = None
     precision: str = "fp32"
+    deterministic: bool = False
     overwrite: bool = False
     sync_bn: bool = True
     objectives: list[str] = field(default_factory=list)
@@ -274,6 +277,20 @@ class TrainConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     paths: PathsConfig = field(default_factory=PathsConfig)
+
+    def _check_budget(self) -> None:
+        """``renderer.memory_budget_mb`` below what one shape's views need whatever its size: refused now."""
+        r = self.renderer
+        if r.memory_budget_mb is None or not isinstance(self.image_size, int):
+            return
+        from .render import budget
+
+        kind = "points" if self.dataset.shape == "points" else ("soft" if r.mode == "soft" else "hard")
+        least = budget.smallest_mb(kind, self.views, self.image_size, self.batch_size)
+        if r.memory_budget_mb < least:
+            raise ValueError(f"renderer.memory_budget_mb={r.memory_budget_mb:g}: {self.batch_size} shapes of {self.views} "
+                             f"views of {self.image_size} px ({kind}) need {least} MiB at least; set "
+                             f"renderer.memory_budget_mb >= {least} (or null: automatic)")
 
     def validate(self) -> "TrainConfig":
         for key in ("views", "image_size", "epochs", "batch_size"):
@@ -299,6 +316,7 @@ class TrainConfig:
             raise ValueError(f"renderer.image_size={self.renderer.image_size} differs from image_size={self.image_size}: "
                              "set the top-level image_size")
         self.renderer.validate()
+        self._check_budget()
         return self
 
 

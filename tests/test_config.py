@@ -164,6 +164,8 @@ def test_top_level_keys_reach_the_parts():
     (["selector.bn_recalibrate=-1"], "selector.bn_recalibrate"),
     (["selector.bn_recalibrate_scope=test"], "selector.bn_recalibrate_scope"),
     (["-m", "views=1,0"], "views=0"),
+    (["renderer.memory_budget_mb=1"], "renderer.memory_budget_mb >= "),
+    (["renderer.memory_budget_mb=0"], "renderer.memory_budget_mb must be > 0"),
     (["-m", "backbone=small_cnn,vgg"], "available options for backbone"),
 ])
 def test_check_overrides_refuses(argv, needle, capsys):

@@ -30,6 +30,8 @@ def test_dry_run_writes_every_stage_as_small_text_records(tmp_path):
     steps = records["train_step"]["result"]["rows"]
     assert {(row["mvnet"], row["mode"]) for row in steps} == {(m, r) for m in ("mvcnn", "viewgcn") for r in ("hard", "soft")}
     assert all(row["render_ms"] > 0 and row["backbone_ms"] > 0 for row in steps)
+    opt = records["options"]["result"]
+    assert opt["deterministic_repeats"] and opt["default_repeats"] and opt["compile"] == "skipped in the dry run"
     assert 0.0 <= records["train_embedded"]["result"]["test_acc"] <= 1.0
     text = (out / "device_check.md").read_text()
     assert "(dry run, CPU)" in text and "## Training step" in text and "Paper-scale targets" in text

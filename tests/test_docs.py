@@ -51,6 +51,7 @@ ALLOWED = [
     (r"scripts/study_tradeoff\.sh", "the trade-off study (1.5 hours); the sweeps it runs are the "
      "+experiment=tradeoff_synthetic(_views) commands, checked on their own"),
     (r"python scripts/verify_dataset\.py \S+ \S+( --(manifest|check) \S+)?", "needs a real dataset copy"),
+    (r"python scripts/device_check\.py \S+( --dry-run)?", "the prepared GPU check; its dry run is tests/test_device_check.py"),
     (r"python3 -m venv \.venv && \. \.venv/bin/activate", "the GPU quickstart's environment (make install does the same)"),
     (r"pip install (torch==2\.13\.0|-e \.)", "the GPU quickstart's install steps, as the Makefile's install target"),
     (r"python -c \"import torch; print\(torch\.cuda\.is_available\(\)\)\"", "asks torch whether it sees a GPU"),

@@ -41,7 +41,7 @@ def test_paper_scale_call_counts_a_render_and_a_budget_groups_it():
     # no per-shape work: a larger batch costs the same number of operators
     four = paper_scale.call("points", 4, None, dev, count=True)
     assert four["fwd_ops"] == one["fwd_ops"] and four["fwd_syncs"] == one["fwd_syncs"]
-    split = paper_scale.call("points", 4, 300.0, dev, count=True)  # room for about one shape per group
+    split = paper_scale.call("points", 4, 500.0, dev, count=True)  # room for about one shape per group
     assert split["groups"] >= 2 and split["fwd_ops"] > four["fwd_ops"]
     res = {"counts": [dict(four, batch=paper_scale.BATCH)], "budget": [], "resnet_ms": 1.0}
     text = paper_scale.markdown(res, on_gpu=False)

@@ -78,3 +78,26 @@ def test_the_whole_model_under_bf16_autocast_renders_the_float32_images(tmp_path
         images = model.render(batch, *views)
     assert images.dtype == torch.float32 and torch.equal(images, ref["images"])
     assert torch.isfinite(out["logits"]).all()
+
+
+def test_deterministic_settings_turn_torchs_deterministic_algorithms_on_and_back_off(tmp_path):
+    """renderer.deterministic: the renderer's forward runs under torch's deterministic algorithms
+    (the same images; the flag is restored after); deterministic=true: the whole run, the renderer
+    included, and the previous settings come back when the run ends."""
+    from mvtn_exp.engine import seeding, train
+
+    mesh, _, azim, elev = _scene()
+    seen = []
+    r = MultiViewRenderer(image_size=32, mode="soft", deterministic=True)
+    real = r._render
+    r._render = lambda *a: seen.append(torch.are_deterministic_algorithms_enabled()) or real(*a)
+    out = r(mesh, azim, elev)
+    plain = MultiViewRenderer(image_size=32, mode="soft")(mesh, azim, elev)
+    assert seen == [True] and not torch.are_deterministic_algorithms_enabled()
+    assert torch.equal(out.images, plain.images)
+    with seeding.deterministic(True):
+        assert torch.are_deterministic_algorithms_enabled() and torch.is_deterministic_algorithms_warn_only_enabled()
+    assert not torch.are_deterministic_algorithms_enabled()
+    metrics = train(tiny_config(str(tmp_path / "cache"), epochs=1, deterministic=True), tmp_path / "run")
+    assert metrics["config"]["deterministic"] and metrics["config"]["renderer"]["deterministic"]
+    assert not torch.are_deterministic_algorithms_enabled()

@@ -14,7 +14,10 @@ overruns is recorded with its error and the next one runs. Stages:
    autocast (R stays float32);
 4. ``train_step``: a paper-scale training step (B = 32, 12 x 224 px, ResNet-18; MVCNN and
    ViewGCN; hard and soft) split into G / R / C with its peak memory;
-5. ``train_embedded``: a short training of the embedded dataset on the device.
+5. ``options``: what ``renderer.deterministic`` and ``renderer.compile`` cost at B = 8 (soft):
+   time per shape against the default, whether two deterministic renders are identical, the first
+   compiled call's seconds (compile is skipped in the dry run);
+6. ``train_embedded``: a short training of the embedded dataset on the device.
 """
 from __future__ import annotations
 
@@ -30,9 +33,9 @@ from pathlib import Path
 
 import torch
 
-STAGES = ("environment", "parity", "paper_scale_fp32", "paper_scale_bf16", "train_step", "train_embedded")
+STAGES = ("environment", "parity", "paper_scale_fp32", "paper_scale_bf16", "train_step", "options", "train_embedded")
 DEADLINE_S = {"environment": 60, "parity": 60, "paper_scale_fp32": 120, "paper_scale_bf16": 45, "train_step": 90,
-              "train_embedded": 60}
+              "options": 75, "train_embedded": 60}
 TOTAL_S = 420  # 7 minutes in all
 IMAGE_TOL, GRAD_TOL = 1e-4, 1e-3
 
@@ -176,11 +179,59 @@ def stage_train_embedded(dry: bool) -> dict:
             "best_val_acc": metrics["best_val_acc"], "seconds": seconds}
 
 
+def stage_options(dry: bool) -> dict:
+    """Soft renders at B = 8 (dry: 2) with ``deterministic`` and ``compile`` against the default."""
+    from ..render import accel
+    from ..render.layouts import spherical
+    from ..render.renderer import MultiViewRenderer
+    from .paper_scale import MODES, scene
+
+    dev = _device(dry)
+    s = _sizes(dry)
+    B = 2 if dry else 8
+    shapes = scene("soft", B, dev)
+    azim, elev, dist = spherical(s["views"], batch=B, distance=2.2, device=dev, sphere="fibonacci")
+
+    def render(**extra):
+        a = azim.clone().requires_grad_(True)
+        out = MultiViewRenderer(image_size=s["size"], **MODES["soft"], **extra)(shapes, a, elev, dist)
+        out.images.sum().backward()
+        return out.images.detach(), a.grad
+
+    def timed(**extra):
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        t0 = time.perf_counter()
+        out = render(**extra)
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        return out, 1000 * (time.perf_counter() - t0) / B
+
+    render()  # warm-up
+    (img, grad), base_ms = timed()
+    (img1, grad1), det_ms = timed(deterministic=True)
+    (img2, grad2), _ = timed(deterministic=True)
+    out = {"device": str(dev), "batch": B, "default_ms": base_ms, "deterministic_ms": det_ms,
+           "deterministic_repeats": bool(torch.equal(img1, img2) and torch.equal(grad1, grad2)),
+           "default_repeats": bool(torch.equal(img, render()[0]))}
+    problem = "skipped in the dry run" if dry else accel.unavailable(dev.type)
+    if problem:
+        out["compile"] = problem
+        return out
+    t0 = time.perf_counter()
+    render(compile=True)
+    out["compile_first_s"] = time.perf_counter() - t0
+    (imgc, _), out["compiled_ms"] = timed(compile=True)
+    out["compiled_max_diff"] = float((imgc - img).abs().max())
+    out["compile"] = accel.failure() or "ok"
+    return out
+
+
 def run_stage(name: str, dry: bool) -> dict:
     fn = {"environment": stage_environment, "parity": stage_parity,
           "paper_scale_fp32": lambda d: stage_paper_scale(d, bf16=False),
           "paper_scale_bf16": lambda d: stage_paper_scale(d, bf16=True),
-          "train_step": stage_train_step, "train_embedded": stage_train_embedded}[name]
+          "train_step": stage_train_step, "options": stage_options, "train_embedded": stage_train_embedded}[name]
     return fn(dry)
 
 
@@ -252,6 +303,18 @@ def markdown(records: dict, dry: bool) -> str:
                   "| C | R | G ms | R ms | C ms | optimizer ms | total ms | peak MiB |", "|---|---|---|---|---|---|---|---|"]
         lines += [f"| {r['mvnet']} | {r['mode']} | {r['selector_ms']:.1f} | {r['render_ms']:.1f} | {r['backbone_ms']:.1f} | "
                   f"{r['optimizer_ms']:.1f} | {r['total_ms']:.1f} | {r['peak_mib']:.0f} |" for r in step["rows"]]
+    opt = records.get("options", {}).get("result")
+    if opt:
+        lines += ["", f"## Renderer options, soft, B = {opt['batch']} ({opt['device']})", "",
+                  "| setting | ms per shape | note |", "|---|---|---|",
+                  f"| default | {opt['default_ms']:.1f} | two renders identical: {opt['default_repeats']} |",
+                  f"| renderer.deterministic=true | {opt['deterministic_ms']:.1f} | two renders identical: "
+                  f"{opt['deterministic_repeats']} |"]
+        if "compiled_ms" in opt:
+            lines.append(f"| renderer.compile=true | {opt['compiled_ms']:.1f} | first call {opt['compile_first_s']:.1f} s; "
+                         f"max image difference {opt['compiled_max_diff']:.1e}; {opt['compile']} |")
+        else:
+            lines.append(f"| renderer.compile=true | - | {opt['compile']} |")
     emb = records.get("train_embedded", {}).get("result")
     if emb:
         lines += ["", f"## Embedded dataset, {emb['epochs']} epochs on {emb['device']}: test accuracy "

@@ -165,3 +165,26 @@ class PointClouds:
 
     def with_points(self, points: torch.Tensor) -> "PointClouds":
         return PointClouds(points, self.points_per_shape, self.colors, list(self.names))
+
+
+def host_counts(shapes) -> tuple[list, ...]:
+    """The per-shape counts on the host (one read): (vertices, faces) of Meshes, (points,) of PointClouds."""
+    if isinstance(shapes, Meshes):
+        return tuple(torch.stack([shapes.verts_per_shape, shapes.faces_per_shape]).tolist())
+    return (shapes.points_per_shape.tolist(),)
+
+
+def subset(shapes, a: int, b: int, counts: tuple | None = None):
+    """Shapes ``a:b`` of packed Meshes or PointClouds (not checked again); counts: ``host_counts(shapes)``
+    (read when None)."""
+    counts = counts or host_counts(shapes)
+    if isinstance(shapes, Meshes):
+        nv, nf = counts
+        v0, v1, f0, f1 = sum(nv[:a]), sum(nv[:b]), sum(nf[:a]), sum(nf[:b])
+        return trusted(Meshes, verts=shapes.verts[v0:v1], faces=shapes.faces[f0:f1] - v0,
+                       verts_per_shape=shapes.verts_per_shape[a:b], faces_per_shape=shapes.faces_per_shape[a:b],
+                       names=list(shapes.names[a:b]))
+    (n,) = counts
+    p0, p1 = sum(n[:a]), sum(n[:b])
+    return trusted(PointClouds, points=shapes.points[p0:p1], points_per_shape=shapes.points_per_shape[a:b],
+                   colors=None if shapes.colors is None else shapes.colors[p0:p1], names=list(shapes.names[a:b]))

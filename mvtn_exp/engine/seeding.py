@@ -1,10 +1,15 @@
 """Global seeding and RNG state capture/restore (python, numpy, torch) for exact resume."""
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import random
 
 import numpy as np
 import torch
+
+log = logging.getLogger(__name__)
 
 
 def seed_everything(seed: int) -> None:
@@ -12,6 +17,30 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % (2 ** 32))
     torch.manual_seed(seed)
+
+
+@contextlib.contextmanager
+def deterministic(on: bool):
+    """Within the block (a run with ``deterministic=true``), torch's deterministic algorithms:
+    cuBLAS with a fixed workspace, cuDNN without autotuning, float ``index_add`` / scatter sums in
+    a fixed order. Warn-only: an operator with no deterministic CUDA implementation (for example
+    the backward of adaptive average pooling in ResNets) warns once, naming itself, and runs anyway;
+    the log says so. Restores the previous settings at the end."""
+    if not on:
+        yield
+        return
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    before = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
+              torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic = False, True
+    log.info("deterministic=true: torch's deterministic algorithms are on (an operator without one warns, "
+             "naming itself, and runs nondeterministically)")
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before[0], warn_only=before[1])
+        torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic = before[2], before[3]
 
 
 def for_rank(seed: int, rank: int, size: int) -> int:

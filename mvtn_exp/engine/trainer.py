@@ -512,9 +512,16 @@ def run_metrics(cfg: TrainConfig, cfg_dict: dict, model, datasets: dict, test: d
 def train(cfg, run_dir, build_model=None) -> dict:
     """Train MVTN per ``cfg`` (TrainConfig / dict / DictConfig) writing into ``run_dir``; return the metrics.
     ``build_model(cfg, num_classes)``: the model factory (default ``build_mvtn``; diagnostics such as
-    ``scripts/studies`` pass their own)."""
+    ``scripts/studies`` pass their own). ``deterministic=true``: the run under torch's deterministic
+    algorithms (``seeding.deterministic``)."""
     cfg = as_config(cfg)
-    run_dir = Path(run_dir)
+    if cfg.deterministic:
+        cfg.renderer.deterministic = True
+    with seeding.deterministic(cfg.deterministic):
+        return _train(cfg, Path(run_dir), build_model)
+
+
+def _train(cfg: TrainConfig, run_dir: Path, build_model) -> dict:
     world = distributed.from_env()  # torchrun: several processes, one run (engine/distributed.py)
     device, origin = prepare_run(cfg, run_dir, world)
     cfg_dict = config_dict(cfg)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import functools
+import logging
 import shutil
 from pathlib import Path
 from typing import Callable
@@ -21,32 +22,37 @@ from typing import Callable
 import torch
 
 _ENABLED = contextvars.ContextVar("mvtn_render_compile", default=False)
+log = logging.getLogger(__name__)
+
+
+_FAILED: list[str] = []  # why torch.compile failed in this process (then everything runs eagerly)
 
 
 def fused(fn: Callable) -> Callable:
-    """Mark ``fn`` (pure tensor maths, no Python side effects) for ``torch.compile`` under ``compiled(True)``."""
+    """Mark ``fn`` (pure tensor maths, no Python side effects) for ``torch.compile`` under ``compiled(True)``.
+
+    When the machine's compiler fails, the process says so in one log line and renders eagerly
+    from then on (the same images to float rounding), never a traceback."""
     compiled_fn = None
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
         nonlocal compiled_fn
-        if torch.compiler.is_compiling() or not _ENABLED.get():  # (inside a compiled caller: traced into it)
+        if torch.compiler.is_compiling() or not _ENABLED.get() or _FAILED:  # (in a compiled caller: traced into it)
             return fn(*args, **kwargs)
         if compiled_fn is None:
             compiled_fn = torch.compile(fn, dynamic=True)
         try:
             return compiled_fn(*args, **kwargs)
-        except _compile_errors() as exc:  # the machine's compiler failed, not the maths: one line
-            first = next((ln.strip() for ln in str(exc).splitlines() if ln.strip()), type(exc).__name__)
-            raise CompileFailed(f"renderer.compile=true: torch.compile failed on this machine ({first[:200]}); "
-                                "set renderer.compile=false to render eagerly") from exc
+        except _compile_errors() as exc:  # the machine's compiler failed, not the maths: one line, then eager
+            first = " ".join(str(exc).split()) or type(exc).__name__  # (one line)
+            _FAILED.append(first[:200])
+            log.warning("renderer.compile=true: torch.compile failed on this machine (%s); rendering eagerly "
+                        "(the same images to float rounding)", first[:200])
+            return fn(*args, **kwargs)
 
     call.eager = fn
     return call
-
-
-class CompileFailed(ValueError):
-    """``torch.compile`` could not build a ``@fused`` function here (a broken or missing compiler)."""
 
 
 def _compile_errors() -> tuple:
@@ -63,8 +69,13 @@ def _compile_errors() -> tuple:
 
 
 def enabled() -> bool:
-    """True inside ``compiled(True)``: callers may then prefer a structure that fuses well."""
-    return _ENABLED.get()
+    """True inside ``compiled(True)`` (and compiling works here): callers may then prefer a structure that fuses well."""
+    return _ENABLED.get() and not _FAILED
+
+
+def failure() -> str | None:
+    """Why torch.compile failed in this process (it then renders eagerly), or None."""
+    return _FAILED[0] if _FAILED else None
 
 
 @contextlib.contextmanager

@@ -41,8 +41,8 @@ PRIM_BYTES = {"hard": 40, "soft": 160, "points": 64}
 CANDIDATE_BYTES = {"hard": 64, "soft": 80, "points": 64}
 # per image pixel, what the backward pass keeps of a group (its differentiable slots), and what it
 # keeps when the group is recomputed in the backward pass instead (the selection and the outputs)
-SAVED_BYTES = {"hard": 24, "soft": 400, "points": 48}
-KEPT_BYTES = {"hard": 24, "soft": 64, "points": 24}
+SAVED_BYTES = {"hard": 32, "soft": 400, "points": 64}
+KEPT_BYTES = {"hard": 32, "soft": 96, "points": 56}
 FIXED_SHARE = 0.5
 CUDA_SHARE = 0.5
 MiB = 1 << 20
@@ -117,6 +117,14 @@ def plan(kind: str, prims_per_shape: torch.Tensor, views: int, image_size: int, 
         groups.append((start, B))
     chunk = max(1, int((1 - FIXED_SHARE) * budget * MiB / CANDIDATE_BYTES[kind]))
     return Plan(groups, chunk, budget, strict=setting is not None, recompute=recompute)
+
+
+def smallest_mb(kind: str, views: int, image_size: int, batch: int, prims: int = 0) -> int:
+    """The smallest ``memory_budget_mb`` that ``plan`` accepts for ``batch`` shapes of ``prims``
+    primitives at ``views`` x ``image_size`` px (with 0 primitives: a lower bound for any batch)."""
+    pixels = views * image_size * image_size
+    one = pixels * (PIXEL_BYTES[kind] + SAVED_BYTES[kind]) + prims * views * PRIM_BYTES[kind]
+    return math.ceil((one + batch * pixels * KEPT_BYTES[kind]) / FIXED_SHARE / MiB)
 
 
 def tile_too_large(plan_or_budget: float | None, kind: str, candidates: int) -> str:

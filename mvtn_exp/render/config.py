@@ -87,6 +87,10 @@ class RendererConfig:
     # compile per process (measured in docs/results/renderer-speed.md); results equal eager's to
     # float rounding. Needs a C++ compiler on CPU, Triton on CUDA
     compile: bool = False
+    # repeatable on CUDA: the renderer runs under torch's deterministic algorithms (its float
+    # index_add / scatter sums then accumulate in a fixed order, e.g. the soft search's test of which
+    # pixels are fully covered); no effect on CPU, where they are already repeatable
+    deterministic: bool = False
 
     def validate(self) -> "RendererConfig":
         def one_of(key, allowed):

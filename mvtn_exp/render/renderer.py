@@ -14,11 +14,12 @@ import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from ..data.shapes import Meshes, PointClouds, trusted
+from ..data.shapes import Meshes, PointClouds, host_counts, subset
 from . import accel, budget, lod, mesh_raster, point_raster, shading, soft_search, tiles
 from .cameras import Cameras, camera_to_ndc, to_camera_packed
 from .config import RendererConfig
 from .ops import take, weighted3
+from .precision import LOW_PRECISION, deterministic_algorithms, full_precision
 from .topology import edge_neighbours
 
 
@@ -26,20 +27,6 @@ from .topology import edge_neighbours
 # once (never more than the face-views or the pixels); "all" every face-view, "pairs" every
 # (pixel, slot) pair (the same numbers; tests compare the three)
 SHADE_FLAT = "seen"
-
-
-LOW_PRECISION = (torch.float16, torch.bfloat16)
-
-
-def full_precision(shapes, azim, elev, dist):
-    """Shapes and views with float16 / bfloat16 tensors cast to float32 (others unchanged)."""
-    def up(t):
-        return t.float() if t.dtype in LOW_PRECISION else t
-
-    ref = shapes.verts if isinstance(shapes, Meshes) else shapes.points
-    if ref.dtype in LOW_PRECISION:
-        shapes = shapes.to(dtype=torch.float32)
-    return shapes, up(azim), up(elev), up(dist)
 
 
 @dataclass
@@ -81,7 +68,8 @@ class MultiViewRenderer(nn.Module):
             raise TypeError(f"renderer: expected Meshes or PointClouds, got {type(shapes).__name__}")
         # R computes in float32 whatever autocast surrounds it (C may run in bf16 / fp16: the search's
         # depth order, barycentrics and blend weights would round wrongly there); float64 stays float64
-        with torch.autocast(azim.device.type, enabled=False), accel.compiled(self.cfg.compile):
+        with torch.autocast(azim.device.type, enabled=False), accel.compiled(self.cfg.compile), \
+                deterministic_algorithms(self.cfg.deterministic):
             shapes, azim, elev, dist = full_precision(shapes, azim, elev, dist)
             return self._render(shapes, azim, elev, dist)
 
@@ -376,25 +364,3 @@ def add_stats(total: dict, part: dict) -> None:
             total[key] = tiles.largest([total[key], value])
         else:
             total[key] = total[key] + value
-
-
-def host_counts(shapes) -> tuple[list, ...]:
-    """The per-shape counts on the host (one read): (vertices, faces) of Meshes, (points,) of PointClouds."""
-    if isinstance(shapes, Meshes):
-        return tuple(torch.stack([shapes.verts_per_shape, shapes.faces_per_shape]).tolist())
-    return (shapes.points_per_shape.tolist(),)
-
-
-def subset(shapes, a: int, b: int, counts: tuple | None = None):
-    """Shapes ``a:b`` of packed Meshes or PointClouds; counts: ``host_counts(shapes)`` (read when None)."""
-    counts = counts or host_counts(shapes)
-    if isinstance(shapes, Meshes):
-        nv, nf = counts
-        v0, v1, f0, f1 = sum(nv[:a]), sum(nv[:b]), sum(nf[:a]), sum(nf[:b])
-        return trusted(Meshes, verts=shapes.verts[v0:v1], faces=shapes.faces[f0:f1] - v0,
-                              verts_per_shape=shapes.verts_per_shape[a:b], faces_per_shape=shapes.faces_per_shape[a:b],
-                              names=list(shapes.names[a:b]))
-    (n,) = counts
-    p0, p1 = sum(n[:a]), sum(n[:b])
-    return trusted(PointClouds, points=shapes.points[p0:p1], points_per_shape=shapes.points_per_shape[a:b],
-                          colors=None if shapes.colors is None else shapes.colors[p0:p1], names=list(shapes.names[a:b]))
