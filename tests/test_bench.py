@@ -235,10 +235,10 @@ def test_targets_take_their_ratios_from_the_paired_times():
     rows = {r["target"].split(":")[0]: r for r in targets(b)}
     hard = rows[f"20k-face mesh, {M} views, {S} px, K=1"]
     assert hard["status"] == "MISS" and hard["measured"] == pytest.approx(0.5)  # from the grid rows
-    b.res.paired.update(hard=([0.2, 0.22, 0.19], [1.0, 1.1, 0.95]), **{"100k": ([0.15] * 3, [0.1] * 3)})
+    b.res.paired.update(hard=([0.1, 0.11, 0.095], [1.0, 1.1, 0.95]), **{"100k": ([0.15] * 3, [0.1] * 3)})
     rows = {r["target"]: r for r in targets(b)}
     hard = next(r for t, r in rows.items() if t.startswith(f"20k-face mesh, {M} views, {S} px, K=1"))
-    assert hard["status"] == "PASS" and hard["measured"] == pytest.approx(0.2) and "200.0 ms vs ResNet-18 1000.0 ms: 0.200 x" in hard["value"]
+    assert hard["status"] == "PASS" and hard["measured"] == pytest.approx(0.1) and "100.0 ms vs ResNet-18 1000.0 ms: 0.100 x" in hard["value"]
     big = next(r for t, r in rows.items() if "without LOD" in t)
     assert big["status"] == "PASS" and big["measured"] == pytest.approx(1.5)
     assert next(r for t, r in rows.items() if "with LOD" in t)["status"].startswith("n/a")
