@@ -64,10 +64,11 @@ def stage_environment(dry: bool) -> dict:
     return out
 
 
-def _parity_scene():
-    from .paper_scale import scene
+def _parity_scene(dry: bool):
+    from .paper_scale import scale, scene
 
-    return {"hard": scene("hard", 2, "cpu"), "soft": scene("soft", 2, "cpu"), "points": scene("points", 2, "cpu")}
+    with scale(2, 4, 64, "torus-2k" if dry else "torus-20k"):
+        return {kind: scene(kind, 2, "cpu") for kind in ("hard", "soft", "points")}
 
 
 def stage_parity(dry: bool) -> dict:
@@ -80,7 +81,7 @@ def stage_parity(dry: bool) -> dict:
     dev = _device(dry)
     size = 64 if dry else 224
     rows = []
-    for kind, shapes in _parity_scene().items():
+    for kind, shapes in _parity_scene(dry).items():
         settings = dict(MODES[kind])
         if kind == "soft":
             settings["sigma"] = 3e-4
@@ -107,7 +108,7 @@ def stage_paper_scale(dry: bool, bf16: bool) -> dict:
 
     dev = _device(dry)
     s = _sizes(dry)
-    with paper_scale.scale(s["batch"], s["views"], s["size"]):
+    with paper_scale.scale(s["batch"], s["views"], s["size"], "torus-2k" if dry else "torus-20k"):
         res = paper_scale.measure(dev, batches=s["counted_batches"], resnet_bf16=bf16,
                                   budget_rows=not bf16)
         res["markdown"] = paper_scale.markdown(res, dev.type == "cuda")
@@ -184,12 +185,13 @@ def stage_options(dry: bool) -> dict:
     from ..render import accel
     from ..render.layouts import spherical
     from ..render.renderer import MultiViewRenderer
-    from .paper_scale import MODES, scene
+    from .paper_scale import MODES, scale, scene
 
     dev = _device(dry)
     s = _sizes(dry)
     B = 2 if dry else 8
-    shapes = scene("soft", B, dev)
+    with scale(s["batch"], s["views"], s["size"], "torus-2k" if dry else "torus-20k"):
+        shapes = scene("soft", B, dev)
     azim, elev, dist = spherical(s["views"], batch=B, distance=2.2, device=dev, sphere="fibonacci")
 
     def render(**extra):

@@ -24,6 +24,7 @@ from .kernel_ops import OpCounter
 from .memory import PeakMemory
 
 BATCH, VIEWS, SIZE = 32, 12, 224
+MESH = "torus-20k"  # the benchmark mesh rendered (render_bench.TORUS_SECTIONS)
 MODES = {"hard": dict(mode="hard"), "soft": dict(mode="soft", faces_per_pixel=8, shading="smooth"),
          "points": dict(points_per_pixel=8)}
 CUDA_80GB_MB = budget.CUDA_SHARE * 80 * 1024  # what memory_budget_mb=null picks with 80 GiB free
@@ -35,15 +36,15 @@ GPU_MS_LIMIT = {"hard": 5.0, "soft": 20.0, "points": 3.0}  # per shape, fwd+bwd,
 
 
 @contextlib.contextmanager
-def scale(batch: int, views: int, size: int):
+def scale(batch: int, views: int, size: int, mesh: str = "torus-20k"):
     """Within the block the rows run at another scale (the device check's dry run: a few seconds)."""
-    global BATCH, VIEWS, SIZE
-    old = BATCH, VIEWS, SIZE
-    BATCH, VIEWS, SIZE = batch, views, size
+    global BATCH, VIEWS, SIZE, MESH
+    old = BATCH, VIEWS, SIZE, MESH
+    BATCH, VIEWS, SIZE, MESH = batch, views, size, mesh
     try:
         yield
     finally:
-        BATCH, VIEWS, SIZE = old
+        BATCH, VIEWS, SIZE, MESH = old
 
 
 def scene(kind: str, B: int, device) -> Meshes | PointClouds:
@@ -53,8 +54,8 @@ def scene(kind: str, B: int, device) -> Meshes | PointClouds:
     if kind == "points":
         src = torus_points(2048, 0, device)
         return PointClouds.from_list(rotated_copies_y(src.points, B), names=[f"points-2048/{k}" for k in range(B)])
-    src = torus("torus-20k", device)
-    return Meshes.from_list(rotated_copies_y(src.verts, B), [src.faces] * B, names=[f"torus-20k/{k}" for k in range(B)])
+    src = torus(MESH, device)
+    return Meshes.from_list(rotated_copies_y(src.verts, B), [src.faces] * B, names=[f"{MESH}/{k}" for k in range(B)])
 
 
 def _sync(device) -> None:
