@@ -97,10 +97,10 @@ class MultiViewRenderer(nn.Module):
         draws = self._draws(B, ref) if mesh and c.shading != "silhouette" else None
         parts = []
         counts = host_counts(shapes) if len(work.groups) > 1 else None
+        pixels = self._mesh_pixels if mesh else self._point_pixels
         for a, b in work.groups:
             group = (shapes, azim, elev, dist, draws) if (a, b) == (0, B) else (
                 subset(shapes, a, b, counts), azim[a:b], elev[a:b], dist[a:b], None if draws is None else draws.part(a, b))
-            pixels = self._mesh_pixels if mesh else self._point_pixels
             pix, rgb, alpha, part_stats = pixels(*group, work.max_candidates, overflow, work.recompute)
             parts.append((pix + a * M * H * W if a else pix, rgb, alpha))
             add_stats(stats, part_stats)

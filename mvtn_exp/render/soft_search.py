@@ -185,20 +185,20 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
     out = []
     r2 = radius**2
     for parts in tiles.candidate_chunks(boxes, span=span, small_box=tiles.SMALL_BOX, **chunks):
-        for cand in (tiles.concat(parts),):  # (one pass over both parts: half the kernels and host reads)
-            hb = hidden_below
-            if hb is not None and not accel.enabled():
-                # eager: drop the hidden candidates before the maths (compiled, one fused loop tests them)
-                idx = torch.nonzero(faces.zl_max.index_select(0, cand.prim) >= hb.index_select(0, cand.pix)).squeeze(1)
-                cand, hb = tiles.Candidates(*(getattr(cand, k).index_select(0, idx) for k in ("prim", "pix", "x", "y"))), None
-            keep, depth, sqd = _near_values(faces.table, faces.zl_max, hb, cand.prim, cand.pix, cand.x, cand.y, r2, keep_inside)
-            keep = torch.nonzero(keep).squeeze(1)
-            prim, pix, depth = cand.prim.index_select(0, keep), cand.pix.index_select(0, keep), depth.index_select(0, keep)
-            fvk = faces.fv.index_select(0, prim)
-            if keep_inside:
-                out.append((pix, fvk, depth, depth))
-            else:
-                out.append((pix, fvk, ranking.depth_logit(faces.image.index_select(0, prim), depth), sqd.index_select(0, keep)))
+        cand = tiles.concat(parts)  # (both parts in one pass: half the kernels and host reads)
+        hb = hidden_below
+        if hb is not None and not accel.enabled():
+            # eager: drop the hidden candidates before the maths (compiled, one fused loop tests them)
+            idx = torch.nonzero(faces.zl_max.index_select(0, cand.prim) >= hb.index_select(0, cand.pix)).squeeze(1)
+            cand, hb = tiles.Candidates(*(getattr(cand, k).index_select(0, idx) for k in ("prim", "pix", "x", "y"))), None
+        keep, depth, sqd = _near_values(faces.table, faces.zl_max, hb, cand.prim, cand.pix, cand.x, cand.y, r2, keep_inside)
+        keep = torch.nonzero(keep).squeeze(1)
+        prim, pix, depth = cand.prim.index_select(0, keep), cand.pix.index_select(0, keep), depth.index_select(0, keep)
+        fvk = faces.fv.index_select(0, prim)
+        if keep_inside:
+            out.append((pix, fvk, depth, depth))
+        else:
+            out.append((pix, fvk, ranking.depth_logit(faces.image.index_select(0, prim), depth), sqd.index_select(0, keep)))
     pix, prim, a, b = _cat(out, 4, faces)
     return pix, prim, a, (None if keep_inside else b)
 
