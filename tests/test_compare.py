@@ -156,6 +156,7 @@ TINY = ["views=2", "image_size=32", "epochs=1", "batch_size=8", "dataset.num_per
         "logger.progress=false", "logger.tensorboard=false"]
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_run_mode_trains_each_side_and_seed_then_reads_them_again(tmp_path, capsys):
     out = tmp_path / "c"
     argv = ["--run", "selector=circular", "--run", "selector=spherical", "--seeds", "0-1", "--jobs", "2",

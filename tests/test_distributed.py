@@ -224,6 +224,7 @@ if os.environ.get("RANK") == "1" and os.environ.get("TORCHELASTIC_RESTART_COUNT"
 """
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_torchrun_max_restarts_goes_on_from_last_pt_in_the_same_folder(runs, cache, tmp_path):
     """A worker killed in epoch 2; torchrun --max-restarts=1 starts the job again: it goes on from
     epoch 1's last.pt in the same folder (under paths.output_dir) and ends exactly as the
@@ -252,6 +253,7 @@ def test_the_first_host_of_a_slurm_node_list(nodelist, first):
     assert distributed.first_host(nodelist) == first
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_a_slurm_step_of_two_tasks_is_one_run_on_two_processes(runs, cache, tmp_path):
     """`srun --ntasks=2 mvtn-train ...` simulated: two processes with the same command line and
     Slurm's task variables (no torchrun) train one run, as torchrun's two processes do."""
@@ -275,6 +277,7 @@ def test_a_slurm_step_of_two_tasks_is_one_run_on_two_processes(runs, cache, tmp_
     assert [e["train_loss"] for e in m["history"]] == [e["train_loss"] for e in two["history"]]
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_torchrun_puts_the_run_under_the_output_dir_an_experiment_file_sets(cache, tmp_path):
     """No hydra.run.dir on the command line: the run dir follows paths.output_dir as composed, here
     from a user experiment file (MVTN_CONFIGS), not only from the command line."""

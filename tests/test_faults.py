@@ -122,6 +122,7 @@ def test_sigterm_while_a_checkpoint_is_written_keeps_the_previous_one_and_resume
     assert a["test_acc"] == b["test_acc"] and [h["train_loss"] for h in a["history"]] == [h["train_loss"] for h in b["history"]]
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_two_sweeps_started_at_once_on_one_folder_train_each_job_once_and_lose_nothing(tmp_path):
     """The same two-job sweep started twice at the same moment into one sweep folder: each job
     is trained by one of them (the other finds its folder busy or finished), both jobs end with

@@ -105,7 +105,7 @@ def _render_both(shading: str):
 
 
 @pytest.mark.skipif(accel.unavailable("cpu") is not None, reason=str(accel.unavailable("cpu")))
-@pytest.mark.parametrize("shading", ["smooth", "flat"])
+@pytest.mark.parametrize("shading", [pytest.param("smooth", marks=pytest.mark.slow), "flat"])  # (smooth: a minute to compile)
 def test_compiled_renderer_matches_eager(shading):
     import torch._dynamo
 

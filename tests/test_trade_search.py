@@ -172,6 +172,7 @@ def _rows(sweep):
     return list(csv.DictReader(open(sweep / "search.csv")))
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_the_search_starts_at_its_points_hands_optuna_the_objectives_and_resumes(tmp_path):
     """One-epoch trials through the project's Optuna sweeper: the first trials are the start points,
     the Pareto solutions it records are the objectives the trials' metrics.json hold, and the same
