@@ -46,3 +46,30 @@ def test_paper_scale_call_counts_a_render_and_a_budget_groups_it():
     res = {"counts": [dict(four, batch=paper_scale.BATCH)], "budget": [], "resnet_ms": 1.0}
     text = paper_scale.markdown(res, on_gpu=False)
     assert "| points | 32 |" in text and "kernel ops per forward render" in text
+
+
+def test_a_search_in_chunks_reads_their_sizes_once_not_per_chunk(monkeypatch):
+    """Binning into tiles costs two host reads per search pass (the pair count, then every tile's
+    counts at once), and each further chunk at most its three data-dependent sizes (row spans,
+    hidden and kept candidates): a read per tile or a second read of a chunk's counts fails."""
+    from conftest import icosphere
+    from mvtn_exp.render import tiles
+    from mvtn_exp.render.renderer import MultiViewRenderer
+
+    mesh = icosphere(3)
+    a, e = torch.tensor([[0.0, 90.0, 180.0, 270.0]]), torch.full((1, 4), 20.0)
+    passes, chunks = [], []
+    split, enumerate_ = tiles._split_box_by_tiles, tiles._enumerate
+    monkeypatch.setattr(tiles, "_split_box_by_tiles", lambda *x, **k: passes.append(1) or split(*x, **k))
+    monkeypatch.setattr(tiles, "_enumerate", lambda *x, **k: chunks.append(1) or enumerate_(*x, **k))
+    rows = {}
+    for name, chunk in (("one", None), ("tiled", 4000)):
+        passes.clear(), chunks.clear()
+        r = MultiViewRenderer(image_size=64, mode="soft", faces_per_pixel=4, tile_size=16,
+                              **({} if chunk is None else dict(max_candidates=chunk)))
+        with OpCounter() as c, tiles.gpu_path():  # (the search's CUDA form, as the benchmark counts it)
+            r(mesh, a, e, 2.5)
+        rows[name] = (c.syncs, len(passes), len(chunks))
+    (one, _, n_one), (tiled, n_passes, n_chunks) = rows["one"], rows["tiled"]
+    assert n_passes == 2 and n_chunks >= n_one + 4, rows  # both passes binned, several chunks each
+    assert tiled <= one + 2 * n_passes + 3 * (n_chunks - n_one), rows

@@ -1,11 +1,12 @@
 """Renderer behaviour against analytic answers and finite differences."""
+import contextlib
 import math
 
 import pytest
 import torch
 
 from conftest import box_mesh, icosphere, random_triangles
-from mvtn_exp.data.shapes import PointClouds
+from mvtn_exp.data.shapes import Meshes, PointClouds
 from mvtn_exp.render import tiles
 from mvtn_exp.render.renderer import MultiViewRenderer
 
@@ -152,6 +153,69 @@ def test_tile_overflow_warns_and_drops_nothing(monkeypatch, mode):
     with pytest.warns(RuntimeWarning, match="budget grown, nothing dropped"):
         out = tight(mesh, a, e, 3.0).images
     assert torch.equal(out, full(mesh, a, e, 3.0).images)
+
+
+@pytest.mark.parametrize("kind", ["hard K=2", "soft", "points"])
+def test_chunks_of_several_tiles_give_the_images_and_gradients_of_one_pass(kind, monkeypatch):
+    """A chunk budget of a fraction of the scene's candidates: tiles of several images are gathered
+    into chunks (their counts read once for all chunks); every pixel's candidates stay in one
+    chunk, so images and camera gradients equal those of a single pass."""
+    torch.manual_seed(3)
+    if kind == "points":
+        shapes = PointClouds.from_list([torch.randn(300, 3) * 0.5, torch.rand(200, 3) - 0.5])
+        opts = dict(points_per_pixel=4)
+    else:
+        ico = icosphere(2)
+        shapes = Meshes.from_list([ico.verts, ico.verts * 0.7 + 0.1], [ico.faces, ico.faces])
+        opts = dict(mode="hard", faces_per_pixel=2) if kind == "hard K=2" else dict(mode="soft", faces_per_pixel=4)
+    B = len(shapes)
+    base = torch.tensor([[0.0, 100.0, 220.0]]).repeat(B, 1) + 17 * torch.arange(B)[:, None]
+    outs, chunks = [], []
+    enumerate_ = tiles._enumerate
+    monkeypatch.setattr(tiles, "_enumerate", lambda *a, **k: chunks.append(1) or enumerate_(*a, **k))
+    for chunk in (None, 300 if kind == "points" else 3000):
+        a, e = base.clone().requires_grad_(True), torch.full((B, 3), 25.0, requires_grad=True)
+        r = MultiViewRenderer(image_size=48, tile_size=16, **opts, **({} if chunk is None else dict(max_candidates=chunk)))
+        o = r(shapes, a, e, 2.5)
+        (o.images * torch.linspace(0, 1, 48)).sum().backward()
+        outs.append((o.images.detach(), a.grad, e.grad))
+        chunks.append(0)
+    assert chunks.index(0) < chunks[chunks.index(0) + 1:].count(1)  # more chunks under the budget
+    (i0, a0, e0), (i1, a1, e1) = outs
+    assert torch.allclose(i0, i1, atol=1e-6) and torch.allclose(a0, a1, atol=1e-5) and torch.allclose(e0, e1, atol=1e-5)
+    assert a0.abs().sum() > 0
+
+
+def test_where_true_without_a_host_read_gives_nonzeros_indices():
+    torch.manual_seed(0)
+    for mask in (torch.rand(1000) < 0.3, torch.zeros(7, dtype=torch.bool), torch.ones(5, dtype=torch.bool),
+                 torch.zeros(0, dtype=torch.bool)):
+        with tiles.gpu_path():
+            got = tiles.where_true(mask, int(mask.sum()))
+        assert torch.equal(got, torch.nonzero(mask).squeeze(1)) and torch.equal(tiles.where_true(mask, int(mask.sum())), got)
+
+
+@pytest.mark.parametrize("kind", ["hard K=2", "soft", "points"])
+def test_the_searchs_cuda_form_renders_what_its_cpu_form_does(kind):
+    """``tiles.gpu_path``: index lists without host reads (what CUDA runs); same images, alpha and
+    camera gradients, bit for bit, chunked into tiles or not."""
+    torch.manual_seed(4)
+    if kind == "points":
+        shapes, opts = PointClouds.from_list([torch.randn(300, 3) * 0.5, torch.rand(200, 3) - 0.5]), dict(points_per_pixel=4)
+    else:
+        ico = icosphere(2)
+        shapes = Meshes.from_list([ico.verts, ico.verts * 0.7 + 0.1], [ico.faces, ico.faces])
+        opts = dict(mode="hard", faces_per_pixel=2) if kind == "hard K=2" else dict(mode="soft", faces_per_pixel=4)
+    for chunk in (None, 300 if kind == "points" else 3000):
+        outs = []
+        for form in (contextlib.nullcontext, tiles.gpu_path):
+            a, e = torch.tensor([[10.0, 130.0, 250.0]] * 2, requires_grad=True), torch.full((2, 3), 30.0, requires_grad=True)
+            r = MultiViewRenderer(image_size=48, tile_size=16, **opts, **({} if chunk is None else dict(max_candidates=chunk)))
+            with form():
+                o = r(shapes, a, e, 2.5)
+                (o.images * torch.linspace(0, 1, 48)).sum().backward()
+            outs.append((o.images.detach(), o.alpha.detach(), a.grad, e.grad))
+        assert all(torch.equal(x, y) for x, y in zip(*outs))
 
 
 def test_train_mode_randomises_light_and_colour_eval_is_fixed():

@@ -19,7 +19,7 @@ import time
 import torch
 
 from ..data.shapes import Meshes, PointClouds
-from ..render import budget
+from ..render import budget, tiles
 from .kernel_ops import OpCounter
 from .memory import PeakMemory
 
@@ -75,7 +75,8 @@ def call(kind: str, B: int, budget_mb: float | None, device, count: bool) -> dic
     azim, elev = azim.clone().requires_grad_(True), elev.clone().requires_grad_(True)
     row = dict(kind=kind, batch=B, budget_mb=budget_mb, counted=count)
     gc.collect()
-    with PeakMemory(device) as pm:
+    # counted: the search's CUDA form on any device (``tiles.gpu_path``), the operators a GPU runs
+    with PeakMemory(device) as pm, (tiles.gpu_path() if count else contextlib.nullcontext()):
         _sync(device)
         t0 = time.perf_counter()
         with (OpCounter() if count else _Null()) as fwd:

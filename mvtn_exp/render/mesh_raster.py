@@ -283,7 +283,7 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
             picks = [tiles.nearest_one(*(torch.cat(t) for t in zip(*picks)), num_pixels)] if picks else []
         empty = torch.zeros(0, dtype=torch.long, device=pf.cols.device)
         pix, _, best = picks[0] if picks else (empty, None, empty)
-        return tiles.Selection(pix, best.unsqueeze(1))
+        return tiles.Selection(pix, best.unsqueeze(1), used=len(pix))  # (every pixel's one slot is used)
 
 
 def _hard_picks(pf: ProjectedFaces, start: int, stop: int, H: int, W: int, K: int, tile_size: int, max_candidates: int,

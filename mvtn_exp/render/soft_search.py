@@ -89,7 +89,11 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
     """The soft search (see the module docstring) -> Selection with slots ``[P, K]`` and the rest."""
     with torch.no_grad():
         dilated = face_boxes(pf.cols, None, blur_radius, H, W)
-        fv = torch.nonzero(pf.alive & (dilated.sizes() > 0)).squeeze(1)
+        seen = pf.alive & (dilated.sizes() > 0)
+        # (with the widest box, which the near pass's row minimum needs: one host read for both)
+        width = torch.where(seen, dilated.j1 - dilated.j0 + 1, 1)
+        n_seen, widest = tiles.read_ints(seen.sum(), width.max() if width.numel() else width.new_ones(()))
+        fv = tiles.where_true(seen, n_seen)
         image = pf.image_of(fv)
         cols = pf.cols.index_select(1, fv)
         table = face_table(cols)
@@ -99,14 +103,15 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
         num_pixels = pf.num_images * H * W
         chunks = dict(H=H, W=W, tile_size=tile_size, max_candidates=max_candidates, dtype=cols.dtype, overflow=overflow)
         if ranking.by_depth:
-            pix, prim, depth, _ = _near(faces, dilated, blur_radius, None, ranking, chunks, keep_inside=True)
+            pix, prim, depth, _ = _near(faces, dilated, blur_radius, None, ranking, chunks, keep_inside=True, widest=widest)
             return tiles.select_nearest(pix, depth, prim, K, num_pixels)
         pix1, prim1, zl1, miss1 = _covering(faces, ranking, chunks)
         miss = torch.zeros(num_pixels, dtype=cols.dtype, device=cols.device).index_add_(0, pix1, miss1)
         best = torch.full((num_pixels,), float("-inf"), dtype=cols.dtype, device=cols.device).scatter_reduce_(0, pix1, zl1, "amax")
         full = miss < ranking.log_tol(cols.dtype)
         hidden_below = torch.where(full, best - (math.log(2.0) + ranking.depth_window), torch.full_like(best, float("-inf")))
-        pix2, prim2, zl2, sqd2 = _near(faces, dilated, blur_radius, hidden_below, ranking, chunks, keep_inside=False)
+        pix2, prim2, zl2, sqd2 = _near(faces, dilated, blur_radius, hidden_below, ranking, chunks, keep_inside=False,
+                                       widest=widest)
         pix = torch.cat([pix1, pix2])
         score = torch.cat([-zl1, -(zl2 + F.logsigmoid(-sqd2 / ranking.sigma))])
         # a slot only for faces whose colour weight is within exp(-depth_window) of the pixel's largest
@@ -118,11 +123,13 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
         prim = torch.cat([prim1, prim2])
         # only the few slot candidates are ranked (every pixel's best is one of them); the others
         # join the rest unsorted
-        ok = torch.nonzero(slot_ok).squeeze(1)
+        other = ~slot_ok & rest_ok
+        n_ok, n_other = tiles.read_ints(slot_ok.sum(), other.sum())
+        ok = tiles.where_true(slot_ok, n_ok)
         sel = tiles.select_nearest(pix.index_select(0, ok), score.index_select(0, ok), prim.index_select(0, ok), K,
                                    num_pixels, keep_rest=True, rest_mask=rest_ok.index_select(0, ok))
         sel.base_log_miss = torch.where(full.index_select(0, sel.pix), miss.index_select(0, sel.pix), 0.0)
-        other = torch.nonzero(~slot_ok & rest_ok).squeeze(1)
+        other = tiles.where_true(other, n_other)
         sel.rest_pix = torch.cat([sel.rest_pix, pix.index_select(0, other)])
         sel.rest_prim = torch.cat([sel.rest_prim, prim.index_select(0, other)])
         # (a count per pixel, not bincount: no host sync; a 0-dim tensor, read when asked)
@@ -164,11 +171,12 @@ def _covering(faces: _Faces, ranking: SoftRanking, chunks: dict):
 
 
 def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, ranking: SoftRanking, chunks: dict,
-          keep_inside: bool):
+          keep_inside: bool, widest: int):
     """Pass 2: faces within ``radius`` of the pixel centre. Candidates whose face's largest depth
     logit is below ``hidden_below[pix]`` are skipped first; covering pairs are left to pass 1 unless
     ``keep_inside``. Returns pix, face-view, then depth logit and squared distance (or depth and
-    None when ``keep_inside``, PyTorch3D's ranking), each ``[C2]``."""
+    None when ``keep_inside``, PyTorch3D's ranking), each ``[C2]``. widest: at least the widest box,
+    in pixels (bounds the row minimum's ranges)."""
     W = chunks["W"]
     if hidden_below is not None:
         hidden = _hidden_faces(faces, boxes, hidden_below, chunks["H"], W)
@@ -180,7 +188,6 @@ def _near(faces: _Faces, boxes: tiles.PixelBoxes, radius: float, hidden_below, r
         hole = (ys.amin(0), ys.amax(0))
     span = row_spans(faces.planes, boxes, radius, tiles.SMALL_BOX, W, hole=hole)
     if hidden_below is not None:
-        widest = int((boxes.j1 - boxes.j0 + 1).max()) if len(boxes.j0) else 1
         span = _unhidden_rows(span, faces, boxes, RowMin(hidden_below, chunks["H"], W, widest), chunks["H"])
     out = []
     r2 = radius**2

@@ -20,6 +20,7 @@ Pixel convention: image row i (top = 0), column j; pixel centre in NDC is
 """
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass
 from typing import Iterator
@@ -54,6 +55,7 @@ class Selection:
     0-dim tensor when counted on the device, read only when asked);
     base_log_miss: ``[P]`` soft coverage the search counted itself and left out of the slots and the
     rest, as a constant ``sum log(1 - p)`` (fully covered pixels: their covering faces' bound).
+    used: the number of used slots when the search knows it on the host (else None: counted when asked).
     """
 
     pix: torch.Tensor
@@ -62,10 +64,13 @@ class Selection:
     rest_prim: torch.Tensor | None = None
     most: int | torch.Tensor = 0
     base_log_miss: torch.Tensor | None = None
+    used: int | None = None
 
     def occupied(self) -> torch.Tensor:
-        """Flat indices into ``prim.view(-1)`` of the used slots ``[S]``, ascending."""
-        return torch.nonzero(self.prim.reshape(-1) >= 0).squeeze(1)
+        """Flat indices into ``prim.view(-1)`` of the used slots ``[S]``, ascending (a host read
+        only when ``used`` is unknown)."""
+        mask = self.prim.reshape(-1) >= 0
+        return torch.nonzero(mask).squeeze(1) if self.used is None else where_true(mask, self.used)
 
 
 def pixel_boxes(xmin, xmax, ymin, ymax, image, H: int, W: int) -> PixelBoxes:
@@ -98,6 +103,39 @@ class Candidates:
 
 # boxes of at most this many pixels are enumerated whole; larger ones row by row through ``span``
 SMALL_BOX = 4
+
+
+def read_ints(*values: torch.Tensor) -> list[int]:
+    """0-dim integer tensors -> Python ints in one host read (one sync on CUDA, however many values)."""
+    return torch.stack([v.reshape(()).long() for v in values]).tolist() if values else []
+
+
+# where_true's form: "auto" is the sync-free one on CUDA and ``nonzero`` on the CPU (faster there,
+# where a host read costs nothing); "sync_free" everywhere, which ``gpu_path`` sets so that a CPU
+# run counts the operators a GPU runs (``bench.kernel_ops``)
+_WHERE = "auto"
+
+
+@contextlib.contextmanager
+def gpu_path():
+    """Within the block the search takes its CUDA form on every device (for counting kernel ops)."""
+    global _WHERE
+    old, _WHERE = _WHERE, "sync_free"
+    try:
+        yield
+    finally:
+        _WHERE = old
+
+
+def where_true(mask: torch.Tensor, count: int) -> torch.Tensor:
+    """The indices ``[count]`` of True in the 1-d ``mask``, ascending, without a host read on CUDA
+    (``count = mask.sum()``, read by the caller, e.g. with other counts in one ``read_ints``)."""
+    if _WHERE == "auto" and mask.device.type == "cpu":
+        return torch.nonzero(mask).squeeze(1)
+    n = mask.numel()
+    dest = torch.where(mask, torch.cumsum(mask, 0) - 1, count)  # the False ones to a spare slot
+    out = torch.empty(count + 1, dtype=torch.long, device=mask.device)
+    return out.scatter_(0, dest, torch.arange(n, device=mask.device))[:count]
 
 
 def columns(xlo: torch.Tensor, xhi: torch.Tensor, W: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -190,29 +228,42 @@ def _enumerate_rows(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, 
     return Candidates(p.index_select(0, own), pix, (2 * j + 1).to(dtype) / W - 1, y.index_select(0, own))
 
 
-def _split_box_by_tiles(boxes: PixelBoxes, prim: torch.Tensor, tile: int, H: int, W: int):
-    """Bin primitives into tiles. Returns per (primitive, tile) pair: a PixelBoxes clipped to the
-    tile, the primitive index and the global tile id; pairs sorted by tile (stable)."""
-    ty0, ty1 = boxes.i0[prim] // tile, boxes.i1[prim] // tile
-    tx0, tx1 = boxes.j0[prim] // tile, boxes.j1[prim] // tile
+def _split_box_by_tiles(boxes: PixelBoxes, tile: int, H: int, W: int):
+    """Bin boxes into tiles (empty boxes into none). Returns per (box, tile) pair: a PixelBoxes
+    clipped to the tile, the box index and the global tile id, pairs sorted by tile (stable); and
+    the number of tile ids. One host read (the pair count and the number of images)."""
+    ty0, ty1 = boxes.i0 // tile, boxes.i1 // tile
+    tx0, tx1 = boxes.j0 // tile, boxes.j1 // tile
     ntx = (W + tile - 1) // tile
     nty = (H + tile - 1) // tile
-    wt = tx1 - tx0 + 1
-    n = wt * (ty1 - ty0 + 1)
-    owner = torch.repeat_interleave(torch.arange(len(prim), device=prim.device), n)
-    local = torch.arange(len(owner), device=prim.device) - (torch.cumsum(n, 0) - n)[owner]
-    ty = ty0[owner] + local // wt[owner]
-    tx = tx0[owner] + local % wt[owner]
-    p = prim[owner]
-    tile_id = (boxes.image[p] * nty + ty) * ntx + tx
+    wt = (tx1 - tx0 + 1).clamp(min=0)
+    n = torch.where(boxes.sizes() > 0, wt * (ty1 - ty0 + 1).clamp(min=0), 0)
+    total, last_image = read_ints(n.sum(), boxes.image.max())
+    dev = n.device
+    owner = torch.repeat_interleave(torch.arange(len(n), device=dev), n, output_size=total)
+    local = torch.arange(total, device=dev) - (torch.cumsum(n, 0) - n).index_select(0, owner)
+    w = wt.index_select(0, owner)
+    ty = ty0.index_select(0, owner) + torch.div(local, w, rounding_mode="floor")
+    tx = tx0.index_select(0, owner) + local % w
+    tile_id = (boxes.image.index_select(0, owner) * nty + ty) * ntx + tx
     order = torch.sort(tile_id, stable=True).indices
-    p, ty, tx, tile_id = p[order], ty[order], tx[order], tile_id[order]
+    p, ty, tx, tile_id = owner[order], ty[order], tx[order], tile_id[order]
     clipped = PixelBoxes(
         boxes.image[p],
         torch.maximum(boxes.j0[p], tx * tile), torch.minimum(boxes.j1[p], tx * tile + tile - 1),
         torch.maximum(boxes.i0[p], ty * tile), torch.minimum(boxes.i1[p], ty * tile + tile - 1),
     )
-    return clipped, p, tile_id
+    return clipped, p, tile_id, (last_image + 1) * nty * ntx
+
+
+def _tile_counts(tiles: PixelBoxes, tile_id: torch.Tensor, num_tiles: int, small_box: int) -> list[list[int]]:
+    """One host read: per tile id, cumulative (pairs, then ``_counts``' four numbers), ``[5][num_tiles]``."""
+    sizes = tiles.sizes()
+    small = sizes <= small_box
+    rows = (tiles.i1 - tiles.i0 + 1).clamp(min=0)
+    per_pair = torch.stack([torch.ones_like(sizes), sizes, small.long(), sizes * small, rows * ~small])
+    per_tile = torch.zeros(5, num_tiles, dtype=torch.long, device=sizes.device).index_add_(1, tile_id, per_pair)
+    return torch.cumsum(per_tile, 1).tolist()
 
 
 _warned_tile_budget = False
@@ -239,8 +290,8 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
     if counts[0] <= max_candidates:
         yield _enumerate(boxes, every, H, W, span, dtype, None, small_box, counts)
         return
-    prim = torch.nonzero(sizes > 0).squeeze(1)
     if by_primitive:
+        prim = torch.nonzero(sizes > 0).squeeze(1)
         ends = torch.cumsum(sizes.index_select(0, prim), 0)
         largest = int(sizes.max())
         if largest > max_candidates and overflow is not None:
@@ -257,14 +308,9 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
             yield _enumerate(boxes, prim[start:stop], H, W, span, dtype, None, small_box)
             start = stop
         return
-    tiles, owner, tile_id = _split_box_by_tiles(boxes, prim, tile_size, H, W)
-    pair_sizes = tiles.sizes()
-    # candidates per tile (tiles are contiguous after the sort)
-    uniq, counts = torch.unique_consecutive(tile_id, return_counts=True)
-    pair_end = torch.cumsum(counts, 0)
-    tile_cands = torch.zeros(len(uniq), dtype=torch.long, device=prim.device)
-    tile_cands.index_add_(0, torch.repeat_interleave(torch.arange(len(uniq), device=prim.device), counts), pair_sizes)
-    most = int(tile_cands.max())
+    tiles, owner, tile_id, num_tiles = _split_box_by_tiles(boxes, tile_size, H, W)
+    cum = _tile_counts(tiles, tile_id, num_tiles, small_box)  # (the chunks' counts below: no read per chunk)
+    most = max(b - a for a, b in zip([0] + cum[1][:-1], cum[1]))
     if most > max_candidates and overflow is not None:
         overflow(most)
     if most > max_candidates and not _warned_tile_budget:
@@ -276,15 +322,15 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
             RuntimeWarning,
             stacklevel=3,
         )
-    cum = torch.cumsum(tile_cands, 0).tolist()
-    pair_end = pair_end.tolist()
-    start_pair, base = 0, 0
-    for t in range(len(cum)):
-        last = t == len(cum) - 1
-        if last or cum[t + 1] - base > max_candidates:
-            sel = torch.arange(start_pair, pair_end[t], device=prim.device)
-            yield _enumerate(tiles, sel, H, W, span, dtype, owner, small_box)
-            start_pair, base = pair_end[t], cum[t]
+    start = 0  # the first tile of the chunk being gathered
+    for t in range(num_tiles):
+        base = cum[1][start - 1] if start else 0
+        if t == num_tiles - 1 or cum[1][t + 1] - base > max_candidates:
+            lo = [c[start - 1] if start else 0 for c in cum]
+            if cum[0][t] > lo[0]:
+                sel = torch.arange(lo[0], cum[0][t], device=tiles.j0.device)
+                yield _enumerate(tiles, sel, H, W, span, dtype, owner, small_box, [c[t] - a for c, a in zip(cum[1:], lo[1:])])
+            start = t + 1
 
 
 def _sortable(score: torch.Tensor) -> torch.Tensor:
@@ -309,10 +355,10 @@ def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K
     empty = torch.zeros(0, dtype=torch.long, device=device)
     if len(pix) == 0:
         return Selection(empty, torch.zeros(0, K, dtype=torch.long, device=device), empty if keep_rest else None,
-                         empty if keep_rest else None, 0)
+                         empty if keep_rest else None, 0, used=0)
     if K == 1 and not keep_rest:
         active, _, best = nearest_one(pix, score, prim, num_pixels)
-        return Selection(active, best.unsqueeze(1))
+        return Selection(active, best.unsqueeze(1), used=len(active))
     if score.dtype == torch.float32:
         # one int64 key (pixel, order-preserving score bits): a single sort
         order = torch.sort((pix << 32) | _sortable(score), stable=True).indices
@@ -329,16 +375,20 @@ def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K
     if slot_mask is not None:
         keep &= slot_mask.index_select(0, order)
     seg = torch.cumsum(first.long(), 0) - 1
-    active = sp[first]
-    out = torch.full((len(active) * K,), -1, dtype=torch.long, device=device)
-    kept = torch.nonzero(keep).squeeze(1)
+    rest = None
+    if keep_rest:
+        rest = ~keep if rest_mask is None else ~keep & rest_mask.index_select(0, order)
+    # the sizes below in one host read
+    n_active, n_kept, n_rest = read_ints(first.sum(), keep.sum(), (rest if keep_rest else keep[:0]).sum())
+    active = sp.index_select(0, where_true(first, n_active))
+    out = torch.full((n_active * K,), -1, dtype=torch.long, device=device)
+    kept = where_true(keep, n_kept)
     out.index_copy_(0, seg.index_select(0, kept) * K + rank.index_select(0, kept), prim.index_select(0, order.index_select(0, kept)))
     rest_pix = rest_prim = None
     if keep_rest:
-        rest = ~keep if rest_mask is None else ~keep & rest_mask.index_select(0, order)
-        rest = torch.nonzero(rest).squeeze(1)
+        rest = where_true(rest, n_rest)
         rest_pix, rest_prim = sp.index_select(0, rest), prim.index_select(0, order.index_select(0, rest))
-    return Selection(active, out.view(-1, K), rest_pix, rest_prim, rank.max() + 1)
+    return Selection(active, out.view(-1, K), rest_pix, rest_prim, rank.max() + 1, used=n_kept)
 
 
 def nearest_one(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, num_pixels: int):
@@ -376,5 +426,6 @@ def merge(selections: list[Selection], K: int, device) -> Selection:
     if selections[0].rest_pix is not None:
         rest_pix = torch.cat([s.rest_pix for s in selections])
         rest_prim = torch.cat([s.rest_prim for s in selections])
+    used = None if any(s.used is None for s in selections) else sum(s.used for s in selections)
     return Selection(pix[order], torch.cat([s.prim for s in selections])[order], rest_pix, rest_prim,
-                     largest([s.most for s in selections]))
+                     largest([s.most for s in selections]), used=used)

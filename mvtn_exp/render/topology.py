@@ -11,9 +11,8 @@ def edge_neighbours(faces: torch.Tensor, num_verts: int | None = None) -> torch.
     is a border. num_verts: more than the largest vertex index (read from ``faces`` when None). On non-manifold edges (three or more faces) faces are paired in index order.
     """
     F_ = len(faces)
-    out = torch.full((F_, 3), -1, dtype=torch.long, device=faces.device)
     if F_ == 0:
-        return out
+        return torch.full((0, 3), -1, dtype=torch.long, device=faces.device)
     a = faces[:, [1, 2, 0]].reshape(-1)
     b = faces[:, [2, 0, 1]].reshape(-1)
     lo, hi = torch.minimum(a, b), torch.maximum(a, b)
@@ -27,9 +26,10 @@ def edge_neighbours(faces: torch.Tensor, num_verts: int | None = None) -> torch.
     run_start[1:] = ~same
     idx = torch.arange(len(k), device=faces.device)
     pos_in_run = idx - torch.where(run_start, idx, torch.zeros_like(idx)).cummax(0).values
-    left = torch.nonzero(same & (pos_in_run[:-1] % 2 == 0)).squeeze(1)
-    e1, e2 = order[left], order[left + 1]
-    flat = out.view(-1)
-    flat[e1] = e2 // 3
-    flat[e2] = e1 // 3
-    return out
+    left = same & (pos_in_run[:-1] % 2 == 0)  # [3F - 1]: sorted position i pairs with i + 1
+    # written without a host read: the unpaired positions go to a spare slot past the end
+    spare = 3 * F_
+    flat = torch.full((3 * F_ + 1,), -1, dtype=torch.long, device=faces.device)
+    flat.scatter_(0, torch.where(left, order[:-1], spare), torch.div(order[1:], 3, rounding_mode="floor"))
+    flat.scatter_(0, torch.where(left, order[1:], spare), torch.div(order[:-1], 3, rounding_mode="floor"))
+    return flat[:-1].view(F_, 3)
