@@ -6,6 +6,8 @@ recomputed differentiably, so gradients reach point positions and the camera.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from . import tiles
@@ -38,18 +40,41 @@ def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive:
         return tiles.merge(picks, K, xy.device)
 
 
-def point_alphas(xy: torch.Tensor, sel: tiles.Selection, *, H: int, W: int, radius: float,
-                 opacity: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Differentiable alphas of the occupied slots only: (slot ``[S]``, flat indices into
-    ``sel.prim.view(-1)``, ascending (pixel by pixel, nearest first); alpha ``[S]``).
+@dataclass
+class PackedSlots:
+    """The used slots of a point Selection, what the differentiable part needs of it: slot ``[S]``
+    flat indices into ``[P, K]``, ascending; point ``[S]`` the point-view in each; pix ``[P]`` the
+    active pixels. ``compact(num_point_views)`` stores slot and point as int32 (half the memory a recomputed group
+    keeps for the backward pass) when they fit; ``long()`` gives int64 ones back."""
+
+    slot: torch.Tensor
+    point: torch.Tensor
+    pix: torch.Tensor
+    K: int
+
+    @staticmethod
+    def of(sel: tiles.Selection) -> "PackedSlots":
+        slot = sel.occupied()
+        return PackedSlots(slot, sel.prim.reshape(-1).index_select(0, slot), sel.pix, sel.prim.shape[1])
+
+    def compact(self, num_point_views: int) -> "PackedSlots":
+        if max(len(self.pix) * self.K, num_point_views) >= 2**31:
+            return self
+        return PackedSlots(self.slot.int(), self.point.int(), self.pix, self.K)
+
+    def long(self) -> "PackedSlots":
+        return PackedSlots(self.slot.long(), self.point.long(), self.pix, self.K)
+
+
+def point_alphas(xy: torch.Tensor, packed: PackedSlots, *, H: int, W: int, radius: float, opacity: float) -> torch.Tensor:
+    """Differentiable alphas of the used slots ``packed`` (pixel by pixel, nearest first): ``[S]``.
 
     Alpha falls off smoothly with the squared screen distance d^2 to the point's centre:
     ``opacity * (1 - d^2/r^2)^2``, C1 at the rim so camera gradients stay bounded.
     """
-    K = sel.prim.shape[1]
-    slot = sel.occupied()
-    px, py = tiles.pixel_centres(sel.pix.index_select(0, torch.div(slot, K, rounding_mode="floor")), H, W, xy.dtype)
-    p = take(xy, sel.prim.reshape(-1).index_select(0, slot))
+    px, py = tiles.pixel_centres(packed.pix.index_select(0, torch.div(packed.slot, packed.K, rounding_mode="floor")),
+                                 H, W, xy.dtype)
+    p = take(xy, packed.point)
     d2 = (p[:, 0] - px) ** 2 + (p[:, 1] - py) ** 2
     t = (1 - d2 / (radius * radius)).clamp(min=0)
-    return slot, opacity * t * t
+    return opacity * t * t

@@ -104,12 +104,9 @@ class MultiViewRenderer(nn.Module):
             pix, rgb, alpha, part_stats = pixels(*group, work.max_candidates, overflow, work.recompute)
             parts.append((pix + a * M * H * W if a else pix, rgb, alpha))
             add_stats(stats, part_stats)
-        if len(parts) != 1:
-            parts = [tuple(torch.cat(t) for t in zip(*parts))] if parts else [
-                (ref.new_zeros(0, dtype=torch.long), ref.new_zeros(0, 3), ref.new_zeros(0))]
         stats.update(groups=len(work.groups), recomputed=work.recompute)
-        images, alpha = self._compose(*parts[0], B, M, H, W, ref)
-        return RenderOutput(images, alpha, stats)
+        images, alpha = self._compose(parts, B * M, H * W, ref)
+        return RenderOutput(images.view(B, M, 3, H, W), alpha.view(B, M, 1, H, W), stats)
 
     # ---------------------------------------------------------------- shared helpers
     def _cameras(self, azim, elev, dist) -> Cameras:
@@ -128,19 +125,12 @@ class MultiViewRenderer(nn.Module):
     def _background(self, ref: torch.Tensor) -> torch.Tensor:
         return torch.tensor(self.cfg.background, dtype=ref.dtype, device=ref.device)
 
-    def _compose(self, pix, rgb, alpha, B, M, H, W, ref) -> tuple[torch.Tensor, torch.Tensor]:
-        """Scatter active-pixel rgb ``[P, 3]`` and alpha ``[P]`` into dense channel-first images."""
-        HW = H * W
-        # fresh flat buffers written in place (not through a view): the images' only copy, autograd
-        # keeps just the indices
-        img = torch.empty(B * M * 3 * HW, dtype=ref.dtype, device=ref.device)
-        with torch.no_grad():
-            img.view(B * M, 3, HW).copy_(self._background(ref)[:, None].expand(B * M, 3, HW))
-        # flat index of channel c of pixel p in image i: (3 i + c) HW + p = pix + 2 i HW + c HW
-        base = pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
-        img = img.index_copy_(0, torch.cat([base, base + HW, base + 2 * HW]), rgb.t().reshape(-1))
-        a = torch.zeros(B * M * HW, dtype=ref.dtype, device=ref.device).index_copy_(0, pix, alpha)
-        return img.view(B, M, 3, H, W), a.view(B, M, 1, H, W)
+    def _compose(self, parts: list, N: int, HW: int, ref) -> tuple[torch.Tensor, torch.Tensor]:
+        """Scatter the groups' active-pixel ``(pix, rgb, alpha)`` into dense channel-first images ``[N, 3, HW]``
+        and alpha ``[N * HW]`` (see ``_Compose``)."""
+        if not parts:
+            parts = [(ref.new_zeros(0, dtype=torch.long), ref.new_zeros(0, 3), ref.new_zeros(0))]
+        return _Compose.apply(self._background(ref), N, HW, *(t for part in parts for t in part))
 
     def _draws(self, B, ref) -> "Draws":
         """The batch's light directions (unit ``[B, 3]`` world, None: towards each camera) and albedos
@@ -333,15 +323,56 @@ class MultiViewRenderer(nn.Module):
         sel = point_raster.search_points(xy, z, image, alive, H=H, W=W, K=c.points_per_pixel, radius=r, num_images=B * M,
                                          tile_size=c.tile_size, max_candidates=max_candidates, overflow=overflow)
         stats = {"points_alive": alive.sum(), "active_pixels": len(sel.pix)}
+        with torch.no_grad():  # (a recomputed group keeps only these, in int32)
+            packed = point_raster.PackedSlots.of(sel)
+            kept = packed.compact(len(xy)) if recompute else packed
+        del sel
 
         def shade(xy):
-            slot, a = point_raster.point_alphas(xy, sel, H=H, W=W, radius=r, opacity=c.point_opacity)
-            colors = None if clouds.colors is None else take(clouds.colors, sel.prim.reshape(-1).index_select(0, slot) // M)
+            p = kept.long()
+            a = point_raster.point_alphas(xy, p, H=H, W=W, radius=r, opacity=c.point_opacity)
+            colors = None if clouds.colors is None else take(clouds.colors, torch.div(p.point, M, rounding_mode="floor"))
             composite = shading.alpha_composite if c.compositor == "alpha" else shading.norm_weighted_composite
-            return composite(slot, a, len(sel.pix), sel.prim.shape[1], colors, self._background(pts))
+            return composite(p.slot, a, len(p.pix), p.K, colors, self._background(pts))
 
         rgb, alpha = checkpoint(shade, xy, use_reentrant=False, preserve_rng_state=False) if recompute else shade(xy)
-        return sel.pix, rgb, alpha, stats
+        return packed.pix, rgb, alpha, stats
+
+
+class _Compose(torch.autograd.Function):
+    """Active pixels of the groups -> dense images ``[N, 3, H, W]`` (background elsewhere) and alpha
+    ``[N, 1, H, W]`` (0 elsewhere), N = B * M. Called as ``apply(background, N, HW, pix_1, rgb_1,
+    alpha_1, pix_2, ...)``: per group flat pixel indices ``[P_g]`` (into the whole batch), rgb
+    ``[P_g, 3]``, alpha ``[P_g]``, written straight into the images (no concatenated copy). The
+    backward pass gathers the images' gradient at the active pixels: it keeps only the ``pix``
+    (8 bytes per active pixel)."""
+
+    @staticmethod
+    def forward(ctx, background, N: int, HW: int, *parts):
+        ref = parts[1]
+        img = torch.empty(N, 3, HW, dtype=ref.dtype, device=ref.device)
+        img.copy_(background.to(ref.dtype)[:, None].expand(N, 3, HW))
+        a = torch.zeros(N * HW, dtype=ref.dtype, device=ref.device)
+        flat = img.view(-1)
+        for pix, rgb, alpha in zip(parts[0::3], parts[1::3], parts[2::3]):
+            # flat index of channel c of pixel p in image i: (3 i + c) HW + p = pix + 2 i HW + c HW
+            base = pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
+            for c in range(3):
+                flat.index_copy_(0, base + c * HW, rgb[:, c])
+            a.index_copy_(0, pix, alpha)
+        ctx.save_for_backward(*parts[0::3])
+        ctx.HW = HW
+        return img, a
+
+    @staticmethod
+    def backward(ctx, g_img, g_alpha):
+        HW = ctx.HW
+        flat, g_a = g_img.reshape(-1), g_alpha.reshape(-1)
+        grads = [None, None, None]
+        for pix in ctx.saved_tensors:
+            base = pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
+            grads += [None, torch.stack([flat.index_select(0, base + c * HW) for c in range(3)], 1), g_a.index_select(0, pix)]
+        return tuple(grads)
 
 
 @dataclass
