@@ -244,20 +244,20 @@ def test_ratio_is_the_paired_geometric_mean_with_its_log_interval(tmp_path, caps
 
 
 def test_a_key_added_after_a_run_reads_as_its_current_default(tmp_path, capsys):
-    """An older run's record lacks renderer.compile (added later, default false): it pairs with
-    newer runs that have false (one side, the filled key listed), not with runs that have true."""
+    """An older run's record lacks renderer.compile (added later, default null): it pairs with
+    newer runs that have null (one side, the filled key listed), not with runs that have true."""
     def run(folder, name, acc, seed, compile_):
         d = _run(folder, name, acc, seed=seed, selector="poi")
-        if compile_ is not None:
+        if compile_ != "absent":
             _set_config(d, renderer={"compile": compile_})
 
     for s in range(3):
-        run(tmp_path / "old", f"s{s}", 0.5, s, None)  # before the key existed
-        run(tmp_path / "new", f"s{s}", 0.5, s + 3, False)  # the same setting, later, other seeds
+        run(tmp_path / "old", f"s{s}", 0.5, s, "absent")  # before the key existed
+        run(tmp_path / "new", f"s{s}", 0.5, s + 3, None)  # the same setting, later, other seeds
     for s in range(6):
         run(tmp_path / "on", f"s{s}", 0.6 + 0.01 * s, s, True)
     result = compare(find_runs([tmp_path / "old", tmp_path / "new"]) + find_runs([tmp_path / "on"]),
-                     where=["renderer.compile=false", "renderer.compile=true"])
+                     where=["renderer.compile=null", "renderer.compile=true"])
     sides = result["groups"][0]["sides"]
     assert sides[0]["seeds"] == sides[1]["seeds"] == [0, 1, 2, 3, 4, 5]
     assert sides[1]["differs_in"] == ["renderer.compile"]

@@ -180,3 +180,44 @@ def test_compile_time_study_separates_the_compile_from_the_render():
     # the first call traces and compiles (or loads its compile cache): far dearer than a render
     assert row["first_s"] > 5 * row["second_s"] > 0
     assert "| warm | flat | 128 |" in compile_time.to_markdown([row])
+
+
+def test_compile_null_compiles_only_where_it_was_measured_faster(monkeypatch):
+    """``renderer.compile=null`` (the default): compiled for soft renders of at least
+    ``accel.AUTO_MIN_SIZE`` px with autograd recording on a CPU that can compile; eager for hard
+    and point renders, small images, renders without autograd (``mvtn-render``, evaluation) and
+    on CUDA; true and false are what they say."""
+    import contextlib
+
+    from mvtn_exp.render import renderer as renderer_mod
+
+    asked = []
+
+    @contextlib.contextmanager
+    def record(on):
+        asked.append(bool(on))
+        yield
+
+    monkeypatch.setattr(renderer_mod.accel, "compiled", record)
+    monkeypatch.setattr(accel, "_unavailable_cached", lambda device_type: None)
+    from conftest import icosphere
+
+    mesh = icosphere(1)
+    a, e = torch.tensor([[30.0]], requires_grad=True), torch.tensor([[10.0]])
+    big, small = accel.AUTO_MIN_SIZE, accel.AUTO_MIN_SIZE // 2
+
+    def compiles(grad=True, **kw):
+        asked.clear()
+        with torch.set_grad_enabled(grad):
+            MultiViewRenderer(**kw)(mesh, a, e)
+        return asked[0]
+
+    assert compiles(image_size=big, mode="soft", shading="silhouette")
+    assert not compiles(grad=False, image_size=big, mode="soft", shading="silhouette")
+    assert not compiles(image_size=small, mode="soft", shading="silhouette")
+    assert not compiles(image_size=big, mode="hard", shading="silhouette")
+    assert not compiles(image_size=big, mode="soft", shading="silhouette", compile=False)
+    assert compiles(image_size=small, mode="hard", shading="silhouette", compile=True)
+    assert not accel.auto_compiles("cuda", True, big)
+    monkeypatch.setattr(accel, "_unavailable_cached", lambda device_type: "no C++ compiler")
+    assert not compiles(image_size=big, mode="soft", shading="silhouette")  # cannot compile here: eager, no error

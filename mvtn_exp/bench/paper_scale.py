@@ -70,7 +70,8 @@ def call(kind: str, B: int, budget_mb: float | None, device, count: bool) -> dic
     from ..render.layouts import spherical
 
     shapes = scene(kind, B, device)
-    r = MultiViewRenderer(image_size=SIZE, memory_budget_mb=budget_mb, **MODES[kind]).eval()
+    # (eager: the kernels CUDA runs, where renderer.compile=null is eager)
+    r = MultiViewRenderer(image_size=SIZE, memory_budget_mb=budget_mb, compile=False, **MODES[kind]).eval()
     azim, elev, dist = spherical(VIEWS, batch=B, distance=2.2, device=device, sphere="fibonacci")
     azim, elev = azim.clone().requires_grad_(True), elev.clone().requires_grad_(True)
     row = dict(kind=kind, batch=B, budget_mb=budget_mb, counted=count)

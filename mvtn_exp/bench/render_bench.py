@@ -144,6 +144,8 @@ LOD_FACES_PER_PIXEL = (None, 0.5, 0.25, 0.125)
 
 
 def renderer_for(shape, size: int, K: int, shading: str = "flat", **extra) -> MultiViewRenderer:
+    """The grid's renderer: eager unless ``compile=True`` is passed (the compiled rows are their own)."""
+    extra.setdefault("compile", False)
     if isinstance(shape, Meshes):
         mode = dict(mode="hard") if K == 1 else dict(mode="soft", faces_per_pixel=K, shading=shading)
         return MultiViewRenderer(image_size=size, **mode, **extra).eval()
@@ -545,14 +547,17 @@ def targets(bench: Bench) -> list[dict]:
 
     out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, K=1: fwd+bwd vs ResNet-18 fwd+bwd on {M} images", "hard",
                          bench.find_grid("torus-20k", S, M, 1), 0.15))
+    default_compiles = accel.auto_compiles(bench.dev.type, True, S)  # what renderer.compile=null runs for these rows
     for shading, factor in (("smooth", 1.0), ("flat", 1.0)):
-        out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}: fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
+        out.append(vs_resnet(f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}, eager (renderer.compile=false"
+                             + ("" if default_compiles else "; the default here") + f"): fwd+bwd vs ResNet-18 fwd+bwd on {M} images",
                              shading, bench.find_grid("torus-20k", S, M, 8, shading), factor))
     unavailable = accel.unavailable(bench.dev.type)
     for shading in ("smooth", "flat"):
         key = f"{shading}_compiled"
         first = res.compile_first_s.get(shading)
         title = (f"20k-face mesh, {M} views, {S} px, soft K=8 {shading}, renderer.compile=true"
+                 + ("; the default here (null)" if default_compiles else "")
                  + (f" (first call {first:.1f} s{', after the smooth row compiled the shared parts' if shading == 'flat' else ''})"
                     if first is not None else "") + f": fwd+bwd vs ResNet-18 fwd+bwd on {M} images")
         if key in res.paired:

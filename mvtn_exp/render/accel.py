@@ -1,11 +1,12 @@
-"""Opt-in ``torch.compile`` of the renderer's per-candidate maths (``renderer.compile=true``).
+"""``torch.compile`` of the renderer's per-candidate maths (``renderer.compile``: true, false, or null:
+automatic, compiled where measured faster, ``auto_compiles``).
 
 The soft search spends most of its time in chains of small element-wise ops over millions of
 (pixel, face) candidates, each op reading and writing whole arrays; compiled, a chain becomes one
 loop that gathers its inputs and keeps the intermediates in registers. Only functions marked
 ``@fused`` are compiled (``dynamic=True``: candidate counts change every call), each once per
 process on first use, and only inside ``compiled(True)`` (the renderer's forward with
-``renderer.compile=true``); everywhere else they run eagerly, so the eager code stays the
+``renderer.compile=true``, or null where ``auto_compiles``); everywhere else they run eagerly, so the eager code stays the
 definition. Compiled results agree with eager ones to float rounding (the compiler may fuse a
 multiply-add), not bit for bit.
 """
@@ -47,7 +48,7 @@ def fused(fn: Callable) -> Callable:
         except _compile_errors() as exc:  # the machine's compiler failed, not the maths: one line, then eager
             first = " ".join(str(exc).split()) or type(exc).__name__  # (one line)
             _FAILED.append(first[:200])
-            log.warning("renderer.compile=true: torch.compile failed on this machine (%s); rendering eagerly "
+            log.warning("renderer.compile: torch.compile failed on this machine (%s); rendering eagerly "
                         "(the same images to float rounding)", first[:200])
             return fn(*args, **kwargs)
 
@@ -86,6 +87,26 @@ def compiled(on: bool):
         yield
     finally:
         _ENABLED.reset(token)
+
+
+# renderer.compile=null compiles soft renders of at least this size (the compiled soft rows at 224
+# px are the ones measured faster; smaller images are not measured, and their compile would not pay)
+AUTO_MIN_SIZE = 192
+
+
+def auto_compiles(device_type: str, soft: bool, image_size: int) -> bool:
+    """What ``renderer.compile=null`` does for a call: compile where it was measured faster, i.e. a
+    soft render of at least ``AUTO_MIN_SIZE`` px with autograd recording (a training step, where the
+    one-time compile is paid once per process and every step gains), on a CPU that can compile.
+    CUDA: eager until a GPU measures compiled against eager (``scripts/device_check.py``'s options
+    stage). One-off renders (``mvtn-render``, evaluation: no autograd) stay eager."""
+    return (device_type == "cpu" and soft and image_size >= AUTO_MIN_SIZE and torch.is_grad_enabled()
+            and _unavailable_cached(device_type) is None)
+
+
+@functools.lru_cache(maxsize=None)
+def _unavailable_cached(device_type: str) -> str | None:
+    return unavailable(device_type)
 
 
 def require(device: str) -> None:

@@ -85,8 +85,10 @@ class RendererConfig:
     max_candidates: int = 1 << 21
     # torch.compile the per-candidate maths (render/accel.py): faster soft renders after a one-time
     # compile per process (measured in docs/results/renderer-speed.md); results equal eager's to
-    # float rounding. Needs a C++ compiler on CPU, Triton on CUDA
-    compile: bool = False
+    # float rounding. true needs a C++ compiler on CPU, Triton on CUDA; false: always eager;
+    # null (automatic): compiled where measured faster (accel.auto_compiles: soft mode, at least
+    # 192 px, with autograd recording, on a CPU that can compile), else eager
+    compile: Optional[bool] = None
     # repeatable on CUDA: the renderer runs under torch's deterministic algorithms (its float
     # index_add / scatter sums then accumulate in a fixed order, e.g. the soft search's test of which
     # pixels are fully covered); no effect on CPU, where they are already repeatable

@@ -68,7 +68,9 @@ class MultiViewRenderer(nn.Module):
             raise TypeError(f"renderer: expected Meshes or PointClouds, got {type(shapes).__name__}")
         # R computes in float32 whatever autocast surrounds it (C may run in bf16 / fp16: the search's
         # depth order, barycentrics and blend weights would round wrongly there); float64 stays float64
-        with torch.autocast(azim.device.type, enabled=False), accel.compiled(self.cfg.compile), \
+        compile_ = self.cfg.compile if self.cfg.compile is not None else accel.auto_compiles(
+            azim.device.type, self.cfg.soft, self.cfg.image_size)
+        with torch.autocast(azim.device.type, enabled=False), accel.compiled(compile_), \
                 deterministic_algorithms(self.cfg.deterministic):
             shapes, azim, elev, dist = full_precision(shapes, azim, elev, dist)
             return self._render(shapes, azim, elev, dist)
