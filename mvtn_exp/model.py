@@ -7,6 +7,7 @@ import torch
 from torch import nn
 
 from .data.shapes import PointClouds
+from .models import pretrained
 from .models.precision import autocast
 from .render.renderer import MultiViewRenderer
 from .schema import SHAPES, TrainConfig
@@ -108,14 +109,16 @@ class MVTN(nn.Module):
                 "selector": [p for p in self.selector.parameters() if p.requires_grad]}
 
 
-def build_mvtn(cfg: TrainConfig, num_classes: int) -> MVTN:
+def build_mvtn(cfg: TrainConfig, num_classes: int, pretrained_weights: bool = True) -> MVTN:
     """G, R and C as ``cfg`` (a validated ``TrainConfig``) describes them, for ``num_classes`` classes.
 
     C is built first and G's initialisation draws from a forked RNG, so that at the same seed C's
     initial weights and every later random draw (order, light, colour) are the same whichever
-    selector is chosen: fixed and learned views are compared on equal terms."""
-    mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=cfg.backbone.weights,
-                            input_norm=cfg.backbone.input_norm)
+    selector is chosen: fixed and learned views are compared on equal terms.
+    pretrained_weights: load ``backbone.weights`` (``imagenet`` from torch's hub cache, downloaded
+    once: ``models/pretrained.py``); False when a checkpoint's weights replace them anyway (evaluation)."""
+    weights = pretrained.resolve(cfg.backbone.name, cfg.backbone.weights) if pretrained_weights else None
+    mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=weights, input_norm=cfg.backbone.input_norm)
     with torch.random.fork_rng(devices=[]):
         selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder)
     model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,

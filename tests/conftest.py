@@ -6,6 +6,12 @@ if os.environ.get("PYTEST_XDIST_WORKER"):  # `make test` runs one worker per cor
     for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # for this process and the CLIs it starts
         os.environ[_var] = "1"
 
+# tests never touch the network: published weights (``backbone.weights=imagenet``) come from an
+# empty mirror folder and a fresh hub cache, so a test that forgets its fixture fails at once, offline
+_NO_NET = Path(os.environ.get("TMPDIR", "/tmp")) / f"mvtn-tests-{os.getpid()}"
+os.environ.setdefault("MVTN_WEIGHTS_MIRROR", f"file://{_NO_NET}/no-weights-here")
+os.environ.setdefault("TORCH_HOME", str(_NO_NET / "torch"))
+
 import pytest  # noqa: E402
 import torch  # noqa: E402
 

@@ -40,6 +40,41 @@ def trees(tmp_path_factory) -> dict:
             "shapenet": shapenet_tree(root / "ShapeNetCore.v2"), "cache": root / "cache"}
 
 
+@pytest.fixture(scope="module", autouse=True)
+def published_weights(tmp_path_factory):
+    """``backbone.weights=imagenet`` without the network: a random-init file per backbone stands in
+    for the publisher's (``test_pretrained`` covers fetching and the hash check)."""
+    from mvtn_exp.models import backbones, pretrained
+
+    real = pretrained.resolve
+    folder = tmp_path_factory.mktemp("published")
+
+    def resolve(backbone, weights, progress=None):
+        if not pretrained.is_source(weights):
+            return real(backbone, weights, progress)
+        path = folder / f"{backbone}-{weights}.pth"
+        if not path.is_file():
+            torch.save(backbones.build_backbone(backbone, 1000).state_dict(), path)
+        return str(path)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pretrained, "resolve", resolve)
+        yield
+
+
+def test_the_paper_files_start_resnets_from_imagenet_and_g_on_the_papers_pointnet():
+    """"a ResNet-18 network, pretrained on ImageNet" (paper L344): every paper file on a ResNet;
+    G's PointNet has both T-nets (3.47 M parameters, L736) in every paper file that learns views."""
+    for name in PAPER:
+        with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
+            cfg = compose("train", overrides=[f"+experiment={name}"])
+        if name.startswith("paper_") and cfg.backbone.name.startswith("resnet"):
+            assert cfg.backbone.weights == "imagenet", name
+        # G's PointNet as the paper's (L736; view transfer takes G from the MVCNN run it names)
+        if name.startswith("paper_") and cfg.selector.name.startswith("mvtn") and name != "paper_view_transfer":
+            assert cfg.point_encoder.name == "pointnet_paper", name
+
+
 def _small(name: str, trees: dict, extra=()) -> dict:
     """The experiment as composed from its file, shrunk (see the module docstring)."""
     with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
@@ -70,7 +105,7 @@ def _train(cfg: dict, run: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def mvcnn_run(trees, tmp_path_factory) -> Path:
+def mvcnn_run(trees, tmp_path_factory, published_weights) -> Path:
     """modelnet_spherical trained: the base setup, and the G that view transfer reads."""
     run = tmp_path_factory.mktemp("modelnet_spherical")
     m = _train(_small("modelnet_spherical", trees), run)

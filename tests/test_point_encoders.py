@@ -5,7 +5,7 @@ import torch
 
 from conftest import box_mesh
 from mvtn_exp.data.shapes import Meshes, PointClouds
-from mvtn_exp.models.point_encoders import (POINT_ENCODERS, PointNet, build_point_encoder,
+from mvtn_exp.models.point_encoders import (POINT_ENCODERS, PaperPointNet, PointNet, build_point_encoder,
                                             sample_points)
 from mvtn_exp.models.pooled_layer import _PooledLayer, pooled_layer
 
@@ -134,11 +134,63 @@ def test_pointnet_rejects_bad_input():
 
 
 def test_point_encoder_registry():
-    assert set(POINT_ENCODERS) == {"pointnet", "dgcnn"}
+    assert set(POINT_ENCODERS) == {"pointnet", "pointnet_paper", "dgcnn"}
     assert build_point_encoder("pointnet", out_features=12, use_tnet=True).tnet is not None
     assert build_point_encoder("dgcnn", out_features=12, k=4).k == 4
-    with pytest.raises(ValueError, match="allowed: dgcnn, pointnet"):
+    assert build_point_encoder("pointnet_paper", out_features=12, dropout=0.0).drop.p == 0.0
+    with pytest.raises(ValueError, match="allowed: dgcnn, pointnet, pointnet_paper"):
         build_point_encoder("pointnet2")
+
+
+# --------------------------------------------------------------------------- the paper's PointNet
+
+
+def test_the_papers_pointnet_has_the_papers_size_and_layers():
+    """3.47-3.49 M parameters in the paper (L736, L777-L781) at b = 40: the reference classifier
+    with both T-nets (3,471,473), nineteen times the compact encoder."""
+    net = PaperPointNet(40)
+    n = sum(p.numel() for p in net.parameters())
+    assert n == 3_471_473 and abs(n - 3.47e6) / 3.47e6 < 0.01
+    assert sum(p.numel() for p in PointNet(40).parameters()) * 15 < n
+    assert (net.input_tnet.k, net.feature_tnet.k) == (3, 64)
+    convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv1d) and m not in set(net.input_tnet.modules())
+             and m not in set(net.feature_tnet.modules())]
+    assert [(c.in_channels, c.out_channels) for c in convs] == [(3, 64), (64, 128), (128, 1024)]
+    assert [(l.in_features, l.out_features) for l in (net.fc1[0], net.fc2, net.fc3)] == [(1024, 512), (512, 256), (256, 40)]
+
+
+def test_the_papers_pointnet_starts_at_identity_transforms_and_trains_them():
+    torch.manual_seed(0)
+    net = PaperPointNet(10).train()
+    x = clouds(B=4, N=64)
+    assert torch.equal(net.input_tnet(x.transpose(1, 2)), torch.eye(3).expand(4, 3, 3))
+    assert torch.equal(net.feature_tnet(torch.randn(4, 64, 64)), torch.eye(64).expand(4, 64, 64))
+    y = net(x)
+    y.square().sum().backward()
+    for tnet in (net.input_tnet, net.feature_tnet):
+        g = tnet.out.weight.grad
+        assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
+    net.eval()
+    x = clouds(B=3, N=300, seed=2)
+    perm = torch.randperm(300, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        a, b = net(x), net(x[:, perm])
+    assert (a - b).abs().max() < 1e-4 and (a[0] - a[1]).abs().max() > 1e-4
+    with pytest.raises(ValueError, match="N = 0"):
+        net(torch.zeros(2, 0, 3))
+
+
+def test_g_on_the_papers_pointnet_is_the_papers_size(tmp_path):
+    """G = the paper's PointNet + the regressor: 3.47-3.49 M + 9.09 K in the paper; within 1%."""
+    from conftest import tiny_config
+    from mvtn_exp.engine.cost import parameter_counts
+    from mvtn_exp.engine.trainer import as_config
+    from mvtn_exp.model import build_mvtn
+
+    cfg = as_config(tiny_config(str(tmp_path), **{"selector.name": "mvtn_spherical", "point_encoder.name": "pointnet_paper",
+                                                     "views": 12}))
+    g = parameter_counts(build_mvtn(cfg, 40))["params_selector"]
+    assert abs(g - (3.47e6 + 9.09e3)) / 3.479e6 < 0.01, g
 
 
 # --------------------------------------------------------------------------- sample_points

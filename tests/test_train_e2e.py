@@ -255,7 +255,7 @@ def test_cli_config_errors_are_one_line_exit_2(tmp_path):
 
 
 def test_cli_real_dataset_missing(tmp_path):
-    r = _cli(["+experiment=modelnet_spherical", f"paths.data_dir={tmp_path / 'nodata'}",
+    r = _cli(["+experiment=modelnet_spherical", "backbone.weights=null", f"paths.data_dir={tmp_path / 'nodata'}",
               f"hydra.run.dir={tmp_path / 'run'}"], ROOT)
     assert r.returncode == 2
     assert "dataset modelnet40 not found at" in r.stderr and "expected layout" in r.stderr
@@ -331,11 +331,12 @@ def test_cli_multirun_keeps_jobs_apart_and_fails_loudly(tmp_path):
     """Jobs differing only in an excluded key (a path) get their own folders; failed jobs make the
     sweep exit 1 naming them, after the summary is written."""
     sweep = tmp_path / "sweep"
-    r = _cli(["-m", "+experiment=modelnet_spherical", f"paths.data_dir={tmp_path / 'a'},{tmp_path / 'b'}",
+    r = _cli(["-m", "+experiment=modelnet_spherical", "backbone.weights=null", f"paths.data_dir={tmp_path / 'a'},{tmp_path / 'b'}",
               f"hydra.sweep.dir={sweep}"], ROOT)
     assert r.returncode == 1, r.stderr[-2000:]
     jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
-    assert jobs == ["0_+experiment-modelnet_spherical", "1_+experiment-modelnet_spherical"], jobs
+    assert jobs == ["0_+experiment-modelnet_spherical_backbone.weights-null",
+                    "1_+experiment-modelnet_spherical_backbone.weights-null"], jobs
     last = r.stderr.strip().splitlines()[-1]
     assert last.startswith("mvtn-train: 2 of 2 sweep jobs failed: 0_+experiment-") and "not found at" in last
     assert (sweep / "summary.csv").is_file()

@@ -26,6 +26,7 @@ from ..engine import run_dir as run_dir_state
 from ..engine.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
 from ..schema import TrainConfig, register_configs, resolve_device
+from ..models import pretrained
 from ..render import accel
 from .common import check_overrides, check_writable, mark_failed, os_error_text
 
@@ -373,9 +374,12 @@ def validate_for_training(cfg: TrainConfig) -> TrainConfig:
     cfg.validate()
     if cfg.renderer.compile:
         accel.require(resolve_device(cfg.device))
+    if pretrained.is_source(cfg.backbone.weights):  # downloaded once into torch's hub cache (before the run folder)
+        pretrained.resolve(cfg.backbone.name, cfg.backbone.weights)
     for key, path in (("backbone.weights", cfg.backbone.weights), ("selector.from_ckpt", getattr(cfg.selector, "from_ckpt", None))):
-        if path and not Path(path).is_file():
-            raise ValueError(f"{key}={path!r}: no such file (a local file is expected; nothing is downloaded)")
+        if path and not pretrained.is_source(path) and not Path(path).is_file():
+            expected = f"a local file, or one of {list(pretrained.SOURCES)}" if key == "backbone.weights" else "a local file"
+            raise ValueError(f"{key}={path!r}: no such file ({expected})")
     return cfg
 
 

@@ -28,7 +28,8 @@ def config_from_checkpoint(state: dict, path) -> TrainConfig:
 
 
 def load_model(cfg: TrainConfig, state: dict, num_classes: int, path, device):
-    model = build_mvtn(cfg, num_classes=num_classes).to(device)
+    # (the checkpoint holds C's weights: the pretrained ones are neither downloaded nor read)
+    model = build_mvtn(cfg, num_classes=num_classes, pretrained_weights=False).to(device)
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as exc:

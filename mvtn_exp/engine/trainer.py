@@ -24,7 +24,7 @@ from tqdm.auto import tqdm
 from ..data.datasets import build_dataset, view_figures
 from ..data.datasets import view_report as dataset_view_report
 from ..model import MVTN, build_mvtn
-from ..models import sync_bn
+from ..models import pretrained, sync_bn
 from ..models.precision import grad_scaler
 from ..schema import TrainConfig, resolve_device, typed_train_config
 from ..tasks import classification
@@ -61,11 +61,12 @@ PATH_KEYS = (("dataset", "root"), ("dataset", "cache_dir"), ("dataset", "split_c
 
 def config_dict(cfg: TrainConfig) -> dict:
     """``cfg`` as plain data, with its file and folder paths made absolute (``PATH_KEYS``): what a
-    checkpoint and metrics.json record works from any working directory."""
+    checkpoint and metrics.json record works from any working directory (``backbone.weights=imagenet``
+    names published weights, not a file: kept as it is)."""
     out = asdict(cfg)
     for group, key in PATH_KEYS:
         value = out.get(group, {}).get(key)
-        if isinstance(value, str) and value:
+        if isinstance(value, str) and value and not pretrained.is_source(value):
             out[group][key] = str(Path(value).expanduser().resolve())
     return out
 

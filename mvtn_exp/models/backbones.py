@@ -22,6 +22,7 @@ from torch import Tensor, nn
 
 from ..checks import one_of
 from ..options import OPTIONS, OptionConfig
+from . import pretrained
 
 PathLike = Union[str, "os.PathLike[str]"]
 IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
@@ -304,8 +305,9 @@ register = OPTIONS["backbone"].register
 
 @dataclass
 class BackboneConfig(OptionConfig):
-    """The 2D backbone shared over views. ``weights``: a local torchvision/timm-style state_dict file
-    (nothing is downloaded). ``normalize``: the input scaling the renders get before the backbone:
+    """The 2D backbone shared over views. ``weights``: published weights by name (``imagenet``:
+    ``models/pretrained.py``, downloaded once into torch's hub cache and hash-checked) or a local
+    torchvision/timm-style state_dict file. ``normalize``: the input scaling the renders get before the backbone:
     ``imagenet`` ((x - mean) / std with ImageNet's mean and std, what pretrained weights were
     trained on), ``none`` (the renders' [0, 1]), ``auto`` (imagenet when ``weights`` is given)."""
 
@@ -317,6 +319,11 @@ class BackboneConfig(OptionConfig):
     def validate(self) -> "BackboneConfig":
         super().validate()
         one_of("backbone.normalize", self.normalize, INPUT_NORMS)
+        if pretrained.is_source(self.weights) and (self.name, self.weights) not in pretrained.PUBLISHED:
+            have = [b for b, s in sorted(pretrained.PUBLISHED) if s == self.weights]
+            raise ValueError(f"backbone.weights={self.weights}: no published {self.weights} weights for "
+                             f"backbone={self.name} (they exist for: {', '.join(have)}); pass a local file as "
+                             "backbone.weights=PATH")
         return self
 
     @property

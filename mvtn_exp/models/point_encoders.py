@@ -1,8 +1,10 @@
 """Point-cloud encoders (the MVTN selector's shape encoder) and dense point sampling.
 
-* ``PointNet`` (Qi et al. 2017): shared MLP 3 -> 64 -> 128 -> 1024 (Conv1d k=1 + BatchNorm +
-  ReLU), global max-pool, projection to ``out_features`` (MVTN's b = 40). The input 3x3 T-net is
-  optional (``use_tnet``); the feature T-net is not implemented (MVTN does not use it).
+* ``PointNet`` (``point_encoder=pointnet``, this project's compact encoder, ~0.18 M parameters):
+  shared MLP 3 -> 64 -> 128 -> 1024 (Conv1d k=1 + BatchNorm + ReLU), global max-pool, projection
+  to ``out_features`` (MVTN's b = 40); the input 3x3 T-net is optional (``use_tnet``).
+* ``PaperPointNet`` (``point_encoder=pointnet_paper``): the PointNet classifier the paper's G uses,
+  with the input and feature T-nets and the 1024-512-256 head (3.47 M parameters at b = 40).
 * ``sample_points(shapes, n)``: a ``PointClouds`` / ``Meshes`` batch -> dense ``[B, n, 3]``.
 * ``POINT_ENCODERS`` / ``build_point_encoder``: the registry (``dgcnn``: ``dgcnn.py``).
 
@@ -111,6 +113,82 @@ class PointNet(nn.Module):
         return self.head(self.global_features(points))
 
 
+class TNet(nn.Module):
+    """PointNet's k x k transform network: ``[B, k, N]`` -> ``[B, k, k]``, as the reference
+    PyTorch PointNet has it: conv k -> 64 -> 128 -> 1024 (bias, BatchNorm, ReLU), max over the
+    points, FC 1024 -> 512 -> 256 (BatchNorm, ReLU) -> k*k, plus the identity. The last layer
+    starts at zero, so the transform starts as the identity."""
+
+    def __init__(self, k: int) -> None:
+        super().__init__()
+        self.k = k
+        self.convs = nn.Sequential(*_conv_bn_relu((k, 64, 128, 1024)))
+        self.fcs = nn.Sequential(*_linear_bn_relu((1024, 512, 256)))
+        self.out = nn.Linear(256, k * k)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        g = self.convs(x).amax(2)
+        eye = torch.eye(self.k, dtype=x.dtype, device=x.device)
+        return self.out(self.fcs(g)).view(-1, self.k, self.k) + eye
+
+
+def _conv_bn_relu(widths: Sequence[int], last_relu: bool = True) -> list[nn.Module]:
+    layers: list[nn.Module] = []
+    for i, (cin, cout) in enumerate(zip(widths[:-1], widths[1:])):
+        layers += [nn.Conv1d(cin, cout, 1), nn.BatchNorm1d(cout)]
+        if last_relu or i < len(widths) - 2:
+            layers.append(nn.ReLU(inplace=True))
+    return layers
+
+
+def _linear_bn_relu(widths: Sequence[int]) -> list[nn.Module]:
+    layers: list[nn.Module] = []
+    for cin, cout in zip(widths[:-1], widths[1:]):
+        layers += [nn.Linear(cin, cout), nn.BatchNorm1d(cout), nn.ReLU(inplace=True)]
+    return layers
+
+
+class PaperPointNet(nn.Module):
+    """The PointNet classifier that MVTN's G uses as its point encoder: points ``[B, N, 3]`` ->
+    ``[B, out_features]`` (the paper's b = 40: its "PointNet" rows, 3.47-3.49 M parameters, L736,
+    L777-L781; 3,471,473 here at b = 40).
+
+    The reference PyTorch PointNet classifier: input T-net (3 x 3), conv 3 -> 64, feature T-net
+    (64 x 64), conv 64 -> 128 -> 1024 (the last with BatchNorm, no ReLU), max over the points,
+    FC 1024 -> 512 -> 256 (BatchNorm, ReLU; dropout ``dropout`` before the second BatchNorm) ->
+    out_features. The feature transform's orthogonality loss is not added (G trains on the task
+    loss only). Training mode needs B >= 2 (BatchNorm over the batch).
+    """
+
+    feature_dim = 1024
+
+    def __init__(self, out_features: int = 40, dropout: float = 0.3) -> None:
+        super().__init__()
+        self.out_features = int(out_features)
+        self.input_tnet, self.feature_tnet = TNet(3), TNet(64)
+        self.conv1 = nn.Sequential(*_conv_bn_relu((3, 64)))
+        self.conv23 = nn.Sequential(*_conv_bn_relu((64, 128, 1024), last_relu=False))
+        self.fc1 = nn.Sequential(*_linear_bn_relu((1024, 512)))
+        self.fc2 = nn.Linear(512, 256)
+        self.drop = nn.Dropout(dropout)
+        self.bn2 = nn.BatchNorm1d(256)
+        self.fc3 = nn.Linear(256, self.out_features)
+
+    def global_features(self, points: Tensor) -> Tensor:
+        """``[B, N, 3] -> [B, 1024]`` max-pooled per-point features."""
+        _check_points(type(self).__name__, points)
+        x = torch.bmm(points, self.input_tnet(points.transpose(1, 2))).transpose(1, 2)  # [B, 3, N]
+        x = self.conv1(x)
+        x = torch.bmm(self.feature_tnet(x).transpose(1, 2), x)  # (x^T A)^T: the features transformed
+        return self.conv23(x).amax(2)
+
+    def forward(self, points: Tensor) -> Tensor:
+        x = self.fc1(self.global_features(points))
+        return self.fc3(torch.relu(self.bn2(self.drop(self.fc2(x)))))
+
+
 def pointnet(out_features: int = 40, **kw) -> PointNet:
     return PointNet(out_features=out_features, **kw)
 
@@ -121,8 +199,13 @@ def dgcnn(out_features: int = 40, **kw) -> nn.Module:
     return DGCNN(out_features=out_features, **kw)
 
 
+def pointnet_paper(out_features: int = 40, **kw) -> PaperPointNet:
+    return PaperPointNet(out_features=out_features, **kw)
+
+
 POINT_ENCODERS: dict[str, Callable[..., nn.Module]] = {
     "pointnet": pointnet,
+    "pointnet_paper": pointnet_paper,
     "dgcnn": dgcnn,
 }
 
@@ -169,6 +252,25 @@ class PointNetConfig(PointEncoderConfig):
 
     def kwargs(self) -> dict:
         return {"use_tnet": self.use_tnet}
+
+
+@register("pointnet_paper")
+@dataclass
+class PaperPointNetConfig(PointEncoderConfig):
+    """The paper's PointNet (``PaperPointNet``: both T-nets, the 1024-512-256 head, 3.47 M
+    parameters at b = 40); ``dropout`` before the head's last BatchNorm (the reference's 0.3)."""
+
+    name: str = "pointnet_paper"
+    dropout: float = 0.3
+
+    def validate(self) -> "PaperPointNetConfig":
+        super().validate()
+        if not 0 <= self.dropout < 1:
+            raise ValueError(f"point_encoder.dropout={self.dropout!r}: expected 0 <= dropout < 1")
+        return self
+
+    def kwargs(self) -> dict:
+        return {"dropout": self.dropout}
 
 
 # ---------------------------------------------------------------------------------------------
