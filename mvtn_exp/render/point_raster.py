@@ -20,9 +20,10 @@ def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive:
     """xy ``[N, 2]`` NDC, z ``[N]`` depth, image ``[N]``, alive ``[N]`` bool -> Selection over point-views."""
     with torch.no_grad():
         pv = torch.nonzero(alive).squeeze(1)
-        x, y = xy.detach()[pv, 0], xy.detach()[pv, 1]
-        boxes = tiles.pixel_boxes(x - radius, x + radius, y - radius, y + radius, image[pv], H, W)
-        zz = z.detach()[pv]
+        seen = xy.detach().index_select(0, pv)
+        x, y = seen[:, 0].contiguous(), seen[:, 1].contiguous()
+        boxes = tiles.pixel_boxes(x - radius, x + radius, y - radius, y + radius, image.index_select(0, pv), H, W)
+        zz = z.detach().index_select(0, pv)
         r2 = radius * radius
 
         def span(p, yy):  # the disc's chord at height yy (slightly widened: candidates are re-tested)
@@ -35,8 +36,9 @@ def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive:
             cand = tiles.concat(parts)
             d2 = (cand.x - x.index_select(0, cand.prim)) ** 2 + (cand.y - y.index_select(0, cand.prim)) ** 2
             keep = torch.nonzero(d2 < r2).squeeze(1)
-            c = cand.prim[keep]
-            picks.append(tiles.select_nearest(cand.pix[keep], zz.index_select(0, c), pv.index_select(0, c), K, num_images * H * W))
+            c = cand.prim.index_select(0, keep)
+            picks.append(tiles.select_nearest(cand.pix.index_select(0, keep), zz.index_select(0, c), pv.index_select(0, c), K,
+                                              num_images * H * W))
         return tiles.merge(picks, K, xy.device)
 
 

@@ -365,7 +365,7 @@ def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K
     else:
         order = torch.sort(score, stable=True).indices
         order = order[torch.sort(pix[order], stable=True).indices]
-    sp = pix[order]
+    sp = pix.index_select(0, order)
     first = torch.ones_like(sp, dtype=torch.bool)
     first[1:] = sp[1:] != sp[:-1]
     idx = torch.arange(len(sp), device=device)
