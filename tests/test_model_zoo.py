@@ -477,3 +477,21 @@ def test_margin_of_a_single_class_is_zero():
 
     logits = torch.tensor([[2.0], [-1.0]])
     assert torch.equal(objective_value("margin", logits, None, torch.zeros(2)), torch.zeros(2))
+
+
+def test_the_papers_scene_optimisation_rules_steps_and_evaluation():
+    """``step_size=null``: 50 for cross-entropy, 25 for coverage and the margins (L507);
+    ``eval_objective=if_label_free``: no steps at test for the cross-entropy objectives (L501),
+    the training objective for the label-free ones; null keeps this project's ``margin``."""
+    from mvtn_exp.selectors.optimized import OptimizedConfig
+
+    def built(**kw):
+        return OptimizedConfig(**kw).validate().build(views=4, seed=0)
+
+    assert [built(objective=o, step_size=None).lr for o in ("min_ce", "max_ce", "margin", "max_coverage")] == [50.0, 50.0, 25.0, 25.0]
+    assert built(objective="min_ce", step_size=7.0).lr == 7.0
+    assert built(objective="min_ce", eval_objective="if_label_free").eval_objective == "none"
+    assert built(objective="max_coverage", eval_objective="if_label_free").eval_objective == "max_coverage"
+    assert built(objective="max_ce").eval_objective == "margin"
+    with pytest.raises(ValueError, match="selector.eval_objective"):
+        OptimizedConfig(eval_objective="max_ce").validate()

@@ -36,6 +36,25 @@ from mvtn_exp.selectors.fixed import BASE_LAYOUTS, LayoutConfig, ViewSelector, V
 LABEL_FREE = ("margin", "max_coverage", "min_coverage")
 OBJECTIVES = ("min_ce", "max_ce", "attack_margin", *LABEL_FREE)
 EVAL_OBJECTIVES = ("none", *LABEL_FREE)
+# eval_objective=if_label_free: the training objective at evaluation when it needs no labels, else
+# none -- the paper's rule ("The CE loss optimization is only applied during training, while the
+# coverage and adversarial losses are optimized during both training and test time", L501)
+IF_LABEL_FREE = "if_label_free"
+# step_size=null: the paper's step for the objective ("a learning rate of 50 ... using the cross
+# entropy loss. For the coverage and adversarial losses, ... a learning rate of 25", L507)
+PAPER_STEP = {"min_ce": 50.0, "max_ce": 50.0, "attack_margin": 25.0, "margin": 25.0, "max_coverage": 25.0,
+              "min_coverage": 25.0}
+
+
+def eval_objective_for(objective: str, setting: str | None) -> str:
+    """The objective an evaluating selector follows: ``setting``, with null meaning ``objective``
+    when label-free else ``margin`` (this project's default) and ``if_label_free`` meaning
+    ``objective`` when label-free else ``none`` (the paper's)."""
+    if setting is None:
+        return objective if objective in LABEL_FREE else "margin"
+    if setting == IF_LABEL_FREE:
+        return objective if objective in LABEL_FREE else "none"
+    return setting
 
 
 class OptimizedSelector(ViewSelector):
@@ -50,7 +69,7 @@ class OptimizedSelector(ViewSelector):
         self.base = base_layout("OptimizedSelector", views, layout, elevation, distance, sphere)
         if objective not in OBJECTIVES:
             raise ValueError(f"selector.objective={objective!r}: expected one of {', '.join(OBJECTIVES)}")
-        eval_objective = eval_objective or (objective if objective in LABEL_FREE else "margin")
+        eval_objective = eval_objective_for(objective, eval_objective)
         if eval_objective not in EVAL_OBJECTIVES:
             raise ValueError(f"selector.eval_objective={eval_objective!r}: expected one of {', '.join(EVAL_OBJECTIVES)} "
                              "(evaluation reads no labels)")
@@ -130,11 +149,13 @@ class OptimizedConfig(LayoutConfig):
     """The paper's scene-parameter optimisation: the base layout, then ``steps`` gradient steps of
     ``step_size`` on each batch's views against ``objective`` of the current C while training, and
     against the label-free ``eval_objective`` at evaluation (null: ``objective`` when it is
-    label-free, else ``margin``)."""
+    label-free, else ``margin``; ``if_label_free``: ``objective`` when it is label-free, else
+    ``none``, the paper's rule). ``step_size`` null: the paper's step for the objective
+    (``PAPER_STEP``: 50 for cross-entropy, 25 for coverage and the margins)."""
 
     name: str = "optimized"
     steps: int = 10
-    step_size: float = 50.0
+    step_size: Optional[float] = 50.0
     objective: str = "min_ce"
     eval_objective: Optional[str] = None
 
@@ -142,15 +163,21 @@ class OptimizedConfig(LayoutConfig):
         super().validate()
         one_of("selector.objective", self.objective, OBJECTIVES)
         if self.eval_objective is not None:
-            one_of("selector.eval_objective", self.eval_objective, EVAL_OBJECTIVES)
+            one_of("selector.eval_objective", self.eval_objective, (*EVAL_OBJECTIVES, IF_LABEL_FREE))
         at_least("selector.steps", self.steps, 0)
-        at_least("selector.step_size", self.step_size, 0.0, strict=True)
+        if self.step_size is not None:
+            at_least("selector.step_size", self.step_size, 0.0, strict=True)
         return self
+
+    @property
+    def step(self) -> float:
+        """``step_size``, or the paper's for ``objective`` when null."""
+        return PAPER_STEP[self.objective] if self.step_size is None else float(self.step_size)
 
     def uses_camera_gradient(self) -> bool:
         return self.steps > 0
 
     def build(self, views: int, seed: int, point_encoder=None) -> ViewSelector:
-        return OptimizedSelector(views, layout=self.base_layout, steps=self.steps, lr=self.step_size,
+        return OptimizedSelector(views, layout=self.base_layout, steps=self.steps, lr=self.step,
                                  objective=self.objective, elevation=self.elevation, distance=self.distance,
                                  sphere=self.sphere, eval_objective=self.eval_objective)
