@@ -50,7 +50,7 @@ PAPER = {
     "paper_modelnet40_classification": ("modelnet40", *_GCN), "paper_view_transfer": ("modelnet40", *_GCN),
     "paper_scanobjectnn_classification": ("scanobjectnn", *_GCN), "paper_shapenet_retrieval": ("shapenet", *_GCN),
     "paper_noise_baseline": ("scanobjectnn", "noisy", "mvcnn", 8, 100, 1e-3),
-    "paper_scene_optimisation": ("modelnet40", "optimized", "mvcnn", 12, 100, 3e-4),
+    "paper_scene_optimisation": ("scanobjectnn", "optimized", "mvcnn", 8, 100, 1e-3),  # L504
 }
 # files the user gives on the command line (placeholders in the experiment file)
 REQUIRED = {"paper_view_transfer": ["selector.from_ckpt=run/best.pt"], "paper_vit_pretraining": ["backbone.weights=w.pth"]}
