@@ -51,6 +51,7 @@ PAPER = {
     "paper_scanobjectnn_classification": ("scanobjectnn", *_GCN), "paper_shapenet_retrieval": ("shapenet", *_GCN),
     "paper_noise_baseline": ("scanobjectnn", "noisy", "mvcnn", 8, 100, 1e-3),
     "paper_scene_optimisation": ("scanobjectnn", "optimized", "mvcnn", 8, 100, 1e-3),  # L504
+    "paper_resnet50_pretraining": ("scanobjectnn", "mvtn_spherical", "mvcnn", 8, 100, 3e-4),  # L629
 }
 # files the user gives on the command line (placeholders in the experiment file)
 REQUIRED = {"paper_view_transfer": ["selector.from_ckpt=run/best.pt"], "paper_vit_pretraining": ["backbone.weights=w.pth"]}
@@ -112,7 +113,7 @@ def test_every_job_of_a_sweep_experiment_composes(name):
         cfg = OmegaConf.to_object(c).validate()
         seen.add((cfg.views, cfg.selector.name, cfg.mvnet.name, cfg.backbone.name, cfg.point_encoder.name,
                   getattr(cfg.selector, "learn_distance", None), cfg.dataset.variant, cfg.renderer.mode, cfg.image_size, cfg.seed,
-                  getattr(cfg.selector, "objective", None)))
+                  getattr(cfg.selector, "objective", None), cfg.backbone.weights))
     assert len(seen) == len(checked)  # every job is a different setting
     text = (CONF / "experiment" / f"{name}.yaml").read_text()
     assert f"{len(jobs)} jobs" in text
