@@ -92,7 +92,7 @@ def test_cli_prints_writes_and_refuses_in_one_line(tmp_path):
     out = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.report", str(tmp_path / "runs"), "--out", str(tmp_path / "rep")],
                          capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
-    assert "| MVTN-spherical + ViewGCN, M = 12, instance accuracy | not in this project's sources | 90.0 | 1 |" in out.stdout
+    assert "| MVTN-spherical + ViewGCN, M = 12, instance accuracy | 93.8 | 90.0 | 1 | -3.8 |" in out.stdout  # (paper: Table 1, L273)
     assert json.loads((tmp_path / "rep" / "report.json").read_text())["tables"][0]["rows"][0]["n"] == 1
     bad = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.report", str(tmp_path / "nope"), "--out", str(tmp_path / "r2")],
                          capture_output=True, text=True)
