@@ -319,11 +319,7 @@ class BackboneConfig(OptionConfig):
     def validate(self) -> "BackboneConfig":
         super().validate()
         one_of("backbone.normalize", self.normalize, INPUT_NORMS)
-        if pretrained.is_source(self.weights) and (self.name, self.weights) not in pretrained.PUBLISHED:
-            have = [b for b, s in sorted(pretrained.PUBLISHED) if s == self.weights]
-            raise ValueError(f"backbone.weights={self.weights}: no published {self.weights} weights for "
-                             f"backbone={self.name} (they exist for: {', '.join(have)}); pass a local file as "
-                             "backbone.weights=PATH")
+        pretrained.check(self.name, self.weights)
         return self
 
     @property

@@ -76,16 +76,22 @@ def resolve(backbone: str, weights: str | None, progress: bool | None = None) ->
     progress: a download's progress bar on stderr (None: when stderr is a terminal)."""
     if not is_source(weights):
         return weights
-    pub = PUBLISHED.get((backbone, weights))
-    if pub is None:
-        have = ", ".join(f"{b}" for b, s in sorted(PUBLISHED) if s == weights)
-        raise PretrainedError(f"backbone.weights={weights}: no published {weights} weights for backbone={backbone} "
-                              f"(they exist for: {have}); pass a local file as backbone.weights=PATH")
+    check(backbone, weights)
+    pub = PUBLISHED[(backbone, weights)]
     path = Path(torch.hub.get_dir()) / "checkpoints" / pub.file_name
     if not path.is_file():
         _download(pub, path, weights, sys.stderr.isatty() if progress is None else progress)
     _check(path, pub, weights)
     return str(path)
+
+
+def check(backbone: str, weights: str | None) -> None:
+    """Raise ``PretrainedError`` (one line) when ``weights`` names a source that has no file for
+    ``backbone`` (no network: a compose-time check)."""
+    if is_source(weights) and (backbone, weights) not in PUBLISHED:
+        have = ", ".join(b for b, s in sorted(PUBLISHED) if s == weights)
+        raise PretrainedError(f"backbone.weights={weights}: no published {weights} weights for backbone={backbone} "
+                              f"(they exist for: {have}); pass a local file as backbone.weights=PATH")
 
 
 def url_of(pub: Published) -> str:

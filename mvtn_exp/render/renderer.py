@@ -341,6 +341,12 @@ class MultiViewRenderer(nn.Module):
         return packed.pix, rgb, alpha, stats
 
 
+def _channel_base(pix: torch.Tensor, HW: int) -> torch.Tensor:
+    """Flat pixel ``[P]`` (image i, pixel p) -> flat index of its channel 0 in ``[N, 3, HW]`` images:
+    (3 i + c) HW + p = pix + 2 i HW + c HW, channel c at ``+ c * HW``."""
+    return pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
+
+
 class _Compose(torch.autograd.Function):
     """Active pixels of the groups -> dense images ``[N, 3, H, W]`` (background elsewhere) and alpha
     ``[N, 1, H, W]`` (0 elsewhere), N = B * M. Called as ``apply(background, N, HW, pix_1, rgb_1,
@@ -357,8 +363,7 @@ class _Compose(torch.autograd.Function):
         a = torch.zeros(N * HW, dtype=ref.dtype, device=ref.device)
         flat = img.view(-1)
         for pix, rgb, alpha in zip(parts[0::3], parts[1::3], parts[2::3]):
-            # flat index of channel c of pixel p in image i: (3 i + c) HW + p = pix + 2 i HW + c HW
-            base = pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
+            base = _channel_base(pix, HW)
             for c in range(3):
                 flat.index_copy_(0, base + c * HW, rgb[:, c])
             a.index_copy_(0, pix, alpha)
@@ -372,7 +377,7 @@ class _Compose(torch.autograd.Function):
         flat, g_a = g_img.reshape(-1), g_alpha.reshape(-1)
         grads = [None, None, None]
         for pix in ctx.saved_tensors:
-            base = pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
+            base = _channel_base(pix, HW)
             grads += [None, torch.stack([flat.index_select(0, base + c * HW) for c in range(3)], 1), g_a.index_select(0, pix)]
         return tuple(grads)
 

@@ -144,13 +144,19 @@ def columns(xlo: torch.Tensor, xhi: torch.Tensor, W: int) -> tuple[torch.Tensor,
             torch.floor(((xhi + 1) * W - 1) / 2).clamp(-1, W).long())
 
 
+def _count_terms(boxes: PixelBoxes, small_box: int) -> torch.Tensor:
+    """Per box ``[4, N]``: its candidates, whether it has at most ``small_box`` pixels, its
+    candidates if so, its rows if not (summed: what ``_enumerate`` needs to size its outputs)."""
+    sizes = boxes.sizes()
+    small = sizes <= small_box
+    rows = (boxes.i1 - boxes.i0 + 1).clamp(min=0)
+    return torch.stack([sizes, small.long(), sizes * small, rows * ~small])
+
+
 def _counts(boxes: PixelBoxes, sel: torch.Tensor, small_box: int) -> list[int]:
     """One host read for the boxes ``sel``: [candidates in all, boxes of at most ``small_box``
     pixels, their candidates, the rows of the larger ones]."""
-    sizes = boxes.sizes().index_select(0, sel)
-    small = sizes <= small_box
-    rows = (boxes.i1.index_select(0, sel) - boxes.i0.index_select(0, sel) + 1).clamp(min=0)
-    return torch.stack([sizes.sum(), small.sum(), (sizes * small).sum(), (rows * ~small).sum()]).tolist()
+    return _count_terms(boxes, small_box).index_select(1, sel).sum(1).tolist()
 
 
 def _enumerate(boxes: PixelBoxes, sel: torch.Tensor, H: int, W: int, span, dtype, owner=None,
@@ -258,11 +264,9 @@ def _split_box_by_tiles(boxes: PixelBoxes, tile: int, H: int, W: int):
 
 def _tile_counts(tiles: PixelBoxes, tile_id: torch.Tensor, num_tiles: int, small_box: int) -> list[list[int]]:
     """One host read: per tile id, cumulative (pairs, then ``_counts``' four numbers), ``[5][num_tiles]``."""
-    sizes = tiles.sizes()
-    small = sizes <= small_box
-    rows = (tiles.i1 - tiles.i0 + 1).clamp(min=0)
-    per_pair = torch.stack([torch.ones_like(sizes), sizes, small.long(), sizes * small, rows * ~small])
-    per_tile = torch.zeros(5, num_tiles, dtype=torch.long, device=sizes.device).index_add_(1, tile_id, per_pair)
+    terms = _count_terms(tiles, small_box)
+    per_pair = torch.cat([torch.ones_like(terms[:1]), terms])
+    per_tile = torch.zeros(5, num_tiles, dtype=torch.long, device=terms.device).index_add_(1, tile_id, per_pair)
     return torch.cumsum(per_tile, 1).tolist()
 
 
