@@ -48,7 +48,7 @@ class MVTN(nn.Module):
         shape's principal frame, and the views are turned back for the record."""
         views = self.select(batch)
         images = self.render(batch, *views)
-        logits, features = self.classify(images, views)
+        logits, features = self.classify(images, views, batch)
         if self.canonical is not None:
             views = world_views(views, self.canonical(batch)[1])
         return {"logits": logits, "features": features, "azim": views[0], "elev": views[1], "dist": views[2],
@@ -59,12 +59,21 @@ class MVTN(nn.Module):
         idempotent, so a batch posed twice is posed once)."""
         return batch if self.canonical is None else self.canonical(batch)[0]
 
-    def classify(self, images, views):
+    def classify(self, images, views, batch: Optional[dict] = None):
         """C: ``images [B, M, 3, H, W]`` rendered from ``views`` -> ``(logits [B, K], features [B, D])``,
-        under ``precision``'s autocast, returned as float32."""
+        under ``precision``'s autocast, returned as float32 (``batch``: see ``mvnet_forward``)."""
         with autocast(self.precision, self.device):
-            logits, features = self.mvnet(images, views)
+            logits, features = self.mvnet_forward(images, views, batch)
         return logits.float(), features.float()
+
+    def mvnet_forward(self, images, views, batch: Optional[dict] = None):
+        """C's forward: ``mvnet(images, views)``; a C that reads the shapes' points too
+        (``mvnet.reads_points``: the paper's late fusion) gets the batch's points, posed as R saw them."""
+        if not getattr(self.mvnet, "reads_points", False):
+            return self.mvnet(images, views)
+        if batch is None:
+            raise ValueError(f"{type(self.mvnet).__name__} reads the shapes' points: call C with the batch")
+        return self.mvnet(images, views, points=self.posed(batch)["points"].to(self.device))
 
     @property
     def device(self):
@@ -118,7 +127,8 @@ def build_mvtn(cfg: TrainConfig, num_classes: int, pretrained_weights: bool = Tr
     pretrained_weights: load ``backbone.weights`` (``imagenet`` from torch's hub cache, downloaded
     once: ``models/pretrained.py``); False when a checkpoint's weights replace them anyway (evaluation)."""
     weights = pretrained.resolve(cfg.backbone.name, cfg.backbone.weights) if pretrained_weights else None
-    mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=weights, input_norm=cfg.backbone.input_norm)
+    mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=weights, input_norm=cfg.backbone.input_norm,
+                            point_encoder=cfg.point_encoder)
     with torch.random.fork_rng(devices=[]):
         selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder)
     model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,

@@ -194,4 +194,4 @@ def test_unknown_name_lists_allowed():
     assert "resnet101" in msg
     for name in ("resnet18", "resnet34", "resnet50", "small_cnn"):
         assert name in msg
-    assert set(BACKBONES) == {"resnet18", "resnet34", "resnet50", "small_cnn", "vit_tiny", "vit_small"}
+    assert set(BACKBONES) == {"resnet18", "resnet34", "resnet50", "small_cnn", "vit_tiny", "vit_small", "vit_base"}

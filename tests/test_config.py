@@ -37,7 +37,8 @@ def test_required_groups_exist():
 @pytest.mark.parametrize("group", [g for g in GROUPS if g != "paths"])
 def test_every_group_option_composes(group):
     for option in _options(group):
-        cfg = _compose([f"{group}={option}"])
+        # (the paper's late fusion takes fixed views: not the default learned ones)
+        cfg = _compose([f"{group}={option}", *(["selector=circular"] if (group, option) == ("mvnet", "late_fusion") else [])])
         if hasattr(getattr(cfg, group), "name"):
             assert option.startswith(getattr(cfg, group).name), (group, option)
 
@@ -45,8 +46,9 @@ def test_every_group_option_composes(group):
 # the paper setups: (dataset, selector, mvnet, views, epochs, C's lr)
 _MVCNN, _GCN = ("modelnet40", "mvtn_spherical", "mvcnn", 12, 100, 3e-4), ("mvtn_spherical", "viewgcn", 12, 85, 1e-3)
 PAPER = {
-    "modelnet_spherical": _MVCNN, "paper_ablation": _MVCNN, "paper_views_ablation": _MVCNN,
-    "paper_vit_pretraining": ("modelnet40", "mvtn_spherical", "mvcnn", 12, 100, 3e-4),
+    "modelnet_spherical": _MVCNN, "paper_ablation": ("modelnet40", *_GCN), "paper_views_ablation": _MVCNN,
+    "paper_ablation_mvcnn": _MVCNN, "modelnet_learned_distance": _MVCNN, "paper_rotation": _MVCNN, "paper_occlusion": _MVCNN,
+    "paper_vit_pretraining": ("scanobjectnn", "mvtn_spherical", "mvcnn", 8, 100, 3e-4),  # L629
     "paper_modelnet40_classification": ("modelnet40", *_GCN), "paper_view_transfer": ("modelnet40", *_GCN),
     "paper_scanobjectnn_classification": ("scanobjectnn", *_GCN), "paper_shapenet_retrieval": ("shapenet", *_GCN),
     "paper_noise_baseline": ("scanobjectnn", "noisy", "mvcnn", 8, 100, 1e-3),
@@ -54,7 +56,7 @@ PAPER = {
     "paper_resnet50_pretraining": ("scanobjectnn", "mvtn_spherical", "mvcnn", 8, 100, 3e-4),  # L629
 }
 # files the user gives on the command line (placeholders in the experiment file)
-REQUIRED = {"paper_view_transfer": ["selector.from_ckpt=run/best.pt"], "paper_vit_pretraining": ["backbone.weights=w.pth"]}
+REQUIRED = {"paper_view_transfer": ["selector.from_ckpt=run/best.pt"]}
 
 
 @pytest.mark.parametrize("name", _options("experiment"))

@@ -25,6 +25,9 @@ class _Stub(nn.Module):
     def render(self, batch, azim, elev, dist):
         return torch.ones(len(azim), 12)
 
+    def mvnet_forward(self, images, views, batch=None):
+        return self.mvnet(images, views)
+
     def mvnet(self, images, views=None):
         return self.c(images), None
 

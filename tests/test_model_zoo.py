@@ -12,6 +12,7 @@ import torch
 from mvtn_exp.engine import checkpoint, train
 from mvtn_exp.engine.evaluation import evaluate_checkpoint
 from mvtn_exp.engine.trainer import as_config
+from mvtn_exp.model import build_mvtn
 from mvtn_exp.models.backbones import BACKBONES, FEATURE_DIMS, build_backbone
 from mvtn_exp.models.multiview import MULTIVIEW, build_multiview
 from mvtn_exp.models.point_encoders import POINT_ENCODERS, build_point_encoder
@@ -43,7 +44,8 @@ def _tiny(cache, **groups) -> dict:
     {"backbone": {"name": "vit_tiny"}},
     {"selector": {"name": "optimized", "steps": 1, "step_size": 25.0, "objective": "margin"}},
     {"mvnet": {"name": "viewgcn", "stages": [1, 1], "k": 2}, "epochs": 2},
-], ids=["view_transformer", "noisy", "dgcnn", "vit_tiny", "optimized", "viewgcn"])
+    {"mvnet": {"name": "late_fusion", "num_points": 64}, "selector": {"name": "circular"}},
+], ids=["view_transformer", "noisy", "dgcnn", "vit_tiny", "optimized", "viewgcn", "late_fusion"])
 def test_component_trains_evaluates_and_round_trips_a_checkpoint(cache, tmp_path, groups):
     """Train one epoch, then rebuild the model from best.pt's config alone and evaluate it: the
     same test accuracy and loss as the training run's own test pass."""
@@ -123,7 +125,7 @@ def test_settings_a_component_cannot_take_fail_at_compose_time(tmp_path, args, n
     ({"mvnet": {"name": "viewgcn", "stages": [3, 4]}, "epochs": 8}, ["mvnet.stages=[3, 4]", "epochs=8", "epochs=7"]),
     ({"mvnet": {"stages": [3, 5]}, "epochs": 8}, ["mvnet.stages", "mvnet=mvcnn has no key 'stages'", "mvnet=viewgcn"]),
     ({"mvnet": {"name": "viewgcn", "stages": [0, 8]}, "epochs": 8}, ["mvnet.stages=[0, 8]", ">= 1"]),
-    ({"mvnet": {"name": "viewgcn", "pool": "mean"}}, ["mvnet=viewgcn has no key 'pool'", "mvnet=late_fusion, mvcnn"]),
+    ({"mvnet": {"name": "viewgcn", "pool": "mean"}}, ["mvnet=viewgcn has no key 'pool'", "mvnet=late_fusion, logit_mean, mvcnn"]),
     ({"mvnet": {"name": "viewgcn"}, "selector": {"warmup_num_views": 1, "warmup_epochs": 1, "warmup_views": "spherical"}},
      ["selector.warmup_num_views=1", "at least 2"]),
     ({"mvnet": {"name": "viewgcn"}, "selector": {"name": "mvtn_poi", "hypotheses": 4, "race_epochs": 2}}, ["selector.hypotheses=4", "mvnet=viewgcn"]),
@@ -191,7 +193,8 @@ def test_every_multiview_network_with_every_backbone(mvnet, backbone, M):
         with pytest.raises(ValueError, match="M >= 2"):
             net(x, views)
         return
-    logits, feats = net(x, views)
+    points = {"points": torch.rand(2, 64, 3)} if getattr(net, "reads_points", False) else {}  # late fusion's
+    logits, feats = net(x, views, **points)
     assert logits.shape == (2, 4) and feats.shape == (2, net.feature_dim)
     assert torch.isfinite(logits).all() and torch.isfinite(feats).all()
     net.training_loss(logits, torch.tensor([0, 3]), lambda z, y: z.square().sum()).backward()
@@ -234,6 +237,30 @@ def test_dgcnn_neighbours_and_order_free():
         net(pts[:, :4])
 
 
+@pytest.mark.parametrize("selector,needles", [
+    ({"name": "mvtn_spherical"}, ["mvnet=late_fusion", "selector=mvtn_spherical learns its views", "selector=circular"]),
+    ({"name": "optimized", "steps": 1}, ["selector=optimized refines its views against C"]),
+])
+def test_paper_late_fusion_is_refused_on_views_that_move_with_c(cache, selector, needles):
+    """The paper fuses points with fixed views; a selector that learns or refines views calls C
+    without the points, so the config says so in one line."""
+    with pytest.raises(ValueError) as err:
+        as_config(_tiny(cache, mvnet={"name": "late_fusion"}, selector=selector))
+    assert "\n" not in str(err.value)
+    for needle in needles:
+        assert needle in str(err.value), (needle, str(err.value))
+    as_config(_tiny(cache, mvnet={"name": "late_fusion"}, selector={"name": "optimized", "steps": 0}))  # fixed after all
+
+
+def test_paper_late_fusion_parameters_are_mvcnn_plus_the_papers_pointnet_sized_to_the_view_features():
+    from mvtn_exp.models.point_encoders import PaperPointNet
+
+    count = lambda m: sum(p.numel() for p in m.parameters())
+    fused, plain = build_multiview("late_fusion", "resnet18", 40), build_multiview("mvcnn", "resnet18", 40)
+    assert count(fused) - count(plain) == count(PaperPointNet(out_features=512))
+    assert count(PaperPointNet(out_features=512)) == count(PaperPointNet(out_features=40)) + 257 * (512 - 40)
+
+
 # --------------------------------------------------------------------------- view transfer
 
 @pytest.fixture(scope="module")
@@ -246,7 +273,7 @@ def source_run(cache, tmp_path_factory) -> Path:
 def test_view_transfer_trains_another_network_on_a_frozen_g(cache, source_run, tmp_path):
     g0 = {k: v for k, v in checkpoint.load(source_run)["model"].items() if k.startswith("selector.")}
     assert any("running_mean" in k for k in g0)  # G's BatchNorm statistics travel too
-    target = _tiny(cache, epochs=2, mvnet={"name": "late_fusion", "pool": "mean"},
+    target = _tiny(cache, epochs=2, mvnet={"name": "logit_mean", "pool": "mean"},
                    selector={"from_ckpt": str(source_run)})
     metrics = train(target, tmp_path / "dst")
     assert metrics["steps"] > 0
@@ -254,6 +281,24 @@ def test_view_transfer_trains_another_network_on_a_frozen_g(cache, source_run, t
     assert g1.keys() == g0.keys() and all(torch.equal(g0[k], g1[k]) for k in g0)  # frozen: weights and statistics
     again = evaluate_checkpoint(EvalConfig(ckpt=str(tmp_path / "dst" / "best.pt"), progress=False), tmp_path / "eval")
     assert again["test_acc"] == metrics["test_acc"]
+
+
+def test_a_finished_runs_backbone_starts_another_run(cache, source_run, tmp_path):
+    """The paper's FSL pretraining, phase 2: ``backbone.weights=RUN/best.pt`` starts C's backbone
+    from a finished run's (its ``mvnet.backbone.*``; G, the head and everything else start fresh)."""
+    phase1 = checkpoint.load(source_run)["model"]
+    # (the backbone's own classifier is never used by C: it is not part of what carries over)
+    want = {k[len("mvnet.backbone."):]: v for k, v in phase1.items()
+            if k.startswith("mvnet.backbone.") and not k.startswith("mvnet.backbone.fc.")}
+    assert want
+    fresh = build_backbone("small_cnn", 3, weights=source_run)
+    got = fresh.state_dict()
+    assert all(torch.equal(got[k], v) for k, v in want.items())
+    target = _tiny(cache, epochs=1, selector={"name": "spherical"}, backbone={"weights": str(source_run)})
+    mvtn = build_mvtn(as_config(target), 3)
+    assert all(torch.equal(mvtn.mvnet.backbone.state_dict()[k], v) for k, v in want.items())
+    assert not torch.equal(mvtn.mvnet.head.weight, phase1["mvnet.head.weight"])  # the head starts fresh
+    assert train(target, tmp_path / "phase2")["steps"] > 0
 
 
 def test_view_transfer_refuses_another_g(cache, source_run, tmp_path):
@@ -266,7 +311,8 @@ def test_view_transfer_refuses_another_g(cache, source_run, tmp_path):
 
 # --------------------------------------------------------------------------- ViT backbones
 
-@pytest.mark.parametrize("name,params,dim", [("vit_tiny", 5_717_416, 192), ("vit_small", 22_050_664, 384)])
+@pytest.mark.parametrize("name,params,dim", [("vit_tiny", 5_717_416, 192), ("vit_small", 22_050_664, 384),
+                                             ("vit_base", 86_567_656, 768)])
 def test_vit_parameters_and_keys_are_timms(name, params, dim):
     net = build_backbone(name, 1000)
     assert sum(p.numel() for p in net.parameters()) == params and net.feature_dim == dim

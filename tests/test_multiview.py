@@ -2,7 +2,8 @@ import pytest
 import torch
 
 from mvtn_exp.models.backbones import resnet18, small_cnn
-from mvtn_exp.models.multiview import MULTIVIEW, LateFusion, MVCNN, build_multiview
+from mvtn_exp.models.late_fusion import PointLateFusion
+from mvtn_exp.models.multiview import MULTIVIEW, LogitMean, MVCNN, build_multiview
 
 K, W = 5, 8  # classes, small_cnn width (feature_dim 64)
 
@@ -16,6 +17,13 @@ def _views(b, m, seed=0):
     """Random views ``(azim, elev, dist)`` ``[b, m]`` (the networks that read views need them)."""
     g = torch.Generator().manual_seed(seed + 100)
     return torch.rand(b, m, generator=g) * 360, torch.rand(b, m, generator=g) * 180 - 90, torch.full((b, m), 2.2)
+
+
+def _points(net, b, n=40, seed=5):
+    """``{"points": [b, n, 3]}`` for a net that reads the shapes' points (the paper's late fusion), else {}."""
+    if not getattr(net, "reads_points", False):
+        return {}
+    return {"points": torch.rand(b, n, 3, generator=torch.Generator().manual_seed(seed))}
 
 
 def _net(pool="max", cls=MVCNN, **kw):
@@ -57,14 +65,15 @@ def test_non_contiguous_input_and_non_square_images():
 
 @pytest.mark.parametrize("name", sorted(MULTIVIEW))
 def test_view_permutation_invariance(name):
+    torch.manual_seed(0)  # (the same weights whatever ran before)
     net = build_multiview(name, small_cnn(num_classes=K, width=W), K).eval()
     x, views = _images(2, 6), _views(2, 6)
     perm = torch.tensor([3, 0, 5, 1, 4, 2])
     with torch.no_grad():
-        l1, f1 = net(x, views)
-        l2, f2 = net(x[:, perm], tuple(v[:, perm] for v in views))
-    torch.testing.assert_close(l1, l2, atol=1e-5, rtol=0)
-    torch.testing.assert_close(f1, f2, atol=1e-5, rtol=0)
+        l1, f1 = net(x, views, **_points(net, 2))
+        l2, f2 = net(x[:, perm], tuple(v[:, perm] for v in views), **_points(net, 2))
+    torch.testing.assert_close(l1, l2, atol=1e-5, rtol=1e-6)  # (logits of ~60: float32 sums in another order)
+    torch.testing.assert_close(f1, f2, atol=1e-5, rtol=1e-6)
 
 
 @pytest.mark.parametrize("name", sorted(MULTIVIEW))
@@ -72,8 +81,10 @@ def test_batch_equals_single_shape_calls(name):
     net = build_multiview(name, "small_cnn", K).eval()
     x, views = _images(3, 4, seed=1), _views(3, 4)
     with torch.no_grad():
-        logits, feats = net(x, views)
-        singles = [net(x[i:i + 1], tuple(v[i:i + 1] for v in views)) for i in range(3)]
+        pts = _points(net, 3)
+        logits, feats = net(x, views, **pts)
+        singles = [net(x[i:i + 1], tuple(v[i:i + 1] for v in views), **{k: v[i:i + 1] for k, v in pts.items()})
+                   for i in range(3)]
     torch.testing.assert_close(logits, torch.cat([s[0] for s in singles]), atol=1e-5, rtol=0)
     torch.testing.assert_close(feats, torch.cat([s[1] for s in singles]), atol=1e-5, rtol=0)
 
@@ -82,7 +93,7 @@ def test_batch_equals_single_shape_calls(name):
 def test_gradients_reach_backbone_and_input_images(name):
     net = build_multiview(name, small_cnn(num_classes=K, width=W), K, dropout=0.2).train()
     x = _images(2, 3, requires_grad=True)
-    logits, _ = net(x, _views(2, 3))
+    logits, _ = net(x, _views(2, 3), **_points(net, 2))
     net.training_loss(logits, torch.tensor([0, 1]), lambda z, y: z.square().sum()).backward()
     assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
     for pname, p in net.named_parameters():
@@ -114,13 +125,50 @@ def test_max_pool_losing_view_gets_zero_grad_mean_pool_all_views():
     assert (grads["mean"] > 0).all()
 
 
-def test_late_fusion_equals_mean_pool_mvcnn_in_eval():
-    mv, lf = _net("mean").eval(), _net("mean", cls=LateFusion, dropout=0.5).eval()
+def test_logit_mean_equals_mean_pool_mvcnn_in_eval():
+    mv, lf = _net("mean").eval(), _net("mean", cls=LogitMean, dropout=0.5).eval()
     lf.load_state_dict(mv.state_dict())
     x = _images(2, 5)
     with torch.no_grad():
         for a, b in zip(mv(x), lf(x)):
             torch.testing.assert_close(a, b, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("pool", ["max", "mean"])
+def test_paper_late_fusion_pools_the_point_feature_with_the_view_features(pool):
+    """The point encoder's vector is one more member of the view pool (the paper's late fusion,
+    L556): features = pool over [M view features; point feature], logits = head(features); the
+    loss reaches the backbone, the point encoder and the points."""
+    net = _net(pool, cls=PointLateFusion, point_encoder="pointnet").eval()
+    x, pts = _images(2, 3), torch.rand(2, 50, 3, requires_grad=True)
+    logits, feats = net(x, None, points=pts)
+    with torch.no_grad():
+        members = torch.cat([_manual_views(net, x), net.point_encoder(pts)[:, None]], 1)  # [B, M + 1, D]
+    want = members.amax(1) if pool == "max" else members.mean(1)
+    torch.testing.assert_close(feats, want, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(logits, net.head(want), atol=1e-5, rtol=1e-5)
+    assert net.point_encoder.out_features == net.feature_dim  # its last layer sized to the view features
+    logits.square().sum().backward()
+    assert pts.grad.abs().sum() > 0
+    assert all(p.grad is not None for p in net.point_encoder.parameters() if p.requires_grad)
+    assert net.backbone.features is not None and any(p.grad.abs().sum() > 0 for p in net.backbone.parameters())
+    # the point feature wins channels of the max: without the points the features differ
+    assert not torch.allclose(feats, _manual_views(net, x).amax(1) if pool == "max" else _manual_views(net, x).mean(1))
+
+
+def test_paper_late_fusion_reads_the_first_points_and_refuses_without_points():
+    net = _net(cls=PointLateFusion, point_encoder="pointnet", num_points=20).eval()
+    x, pts = _images(2, 3), torch.rand(2, 50, 3)
+    with torch.no_grad():
+        a = net(x, None, points=pts)[0]
+        b = net(x, None, points=torch.cat([pts[:, :20], torch.rand(2, 30, 3)], 1))[0]
+    torch.testing.assert_close(a, b, atol=0, rtol=0)  # only the first 20 points are read
+    for bad, needle in ((None, "got none"), (torch.rand(2, 50), "got [2, 50]")):
+        with pytest.raises(ValueError, match="needs points") as err:
+            net(x, None, points=bad)
+        assert needle in str(err.value)
+    with pytest.raises(ValueError, match="2 shapes of images but 3 of points"):
+        net(x, None, points=torch.rand(3, 50, 3))
 
 
 def test_dropout_only_in_train_mode():
@@ -139,7 +187,7 @@ def test_dropout_only_in_train_mode():
 
 
 def test_unknown_names_and_bad_input_raise_clear_errors():
-    with pytest.raises(ValueError, match=r"unknown multi-view network 'rotationnet'.*late_fusion, mvcnn"):
+    with pytest.raises(ValueError, match=r"unknown multi-view network 'rotationnet'.*late_fusion, logit_mean, mvcnn"):
         build_multiview("rotationnet", "small_cnn", K)
     with pytest.raises(ValueError, match=r"unknown backbone 'resnet7'.*allowed"):
         build_multiview("mvcnn", "resnet7", K)

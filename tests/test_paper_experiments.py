@@ -29,6 +29,7 @@ PAPER = sorted(p.stem for p in CONF.glob("paper_*.yaml")) + ["modelnet_spherical
 @pytest.fixture(scope="module")
 def trees(tmp_path_factory) -> dict:
     from test_modelnet import _tree as modelnet_tree
+    from test_modelnet_points import make_h5
     from test_scanobjectnn import VARIANTS, _write
     from test_shapenet import _tree as shapenet_tree
 
@@ -37,6 +38,7 @@ def trees(tmp_path_factory) -> dict:
     _write(root / "ScanObjectNN" / folder / train_file, 10, 0)
     _write(root / "ScanObjectNN" / folder / test_file, 5, 1)
     return {"modelnet40": modelnet_tree(root / "ModelNet40", broken=False), "scanobjectnn": root / "ScanObjectNN",
+            "modelnet40_h5": make_h5(root / "modelnet40_ply_hdf5_2048"),
             "shapenet": shapenet_tree(root / "ShapeNetCore.v2"), "cache": root / "cache"}
 
 
@@ -80,7 +82,8 @@ def _small(name: str, trees: dict, extra=()) -> dict:
     with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
         base = OmegaConf.to_object(compose("train", overrides=[f"+experiment={name}", *extra]))
     ds = base.dataset.name
-    over = [f"+experiment={name}", "image_size=16", "batch_size=4", f"dataset.root={trees[ds]}",
+    tree = trees["modelnet40_h5" if getattr(base.dataset, "format", None) == "ply_hdf5_2048" else ds]
+    over = [f"+experiment={name}", "image_size=16", "batch_size=4", f"dataset.root={tree}",
             f"dataset.cache_dir={trees['cache']}", "dataset.num_points=128", "logger.progress=false",
             "logger.tensorboard=false", *extra]
     if ds != "shapenet":
@@ -113,16 +116,22 @@ def mvcnn_run(trees, tmp_path_factory, published_weights) -> Path:
     return run
 
 
-@pytest.mark.parametrize("name", [n for n in PAPER if n not in ("modelnet_spherical",)])
+SLOW = {"paper_vit_pretraining"}  # ViT-B/16 (86 M parameters): ~17 s on 2 cores
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n
+                                  for n in PAPER if n not in ("modelnet_spherical",)])
 def test_paper_experiment_trains_and_evaluates(name, trees, mvcnn_run, tmp_path):
     extra = []
     if name == "paper_view_transfer":
         extra = [f"selector.from_ckpt={mvcnn_run / 'best.pt'}"]
+    if name == "paper_ablation_mvcnn":  # its late-fusion half (the MVTN half is the other files' setup)
+        extra = ["+fusion=late_spherical"]
     if name == "paper_vit_pretraining":
         from mvtn_exp.models.backbones import build_backbone
 
-        weights = tmp_path / "dino_vit_small.pth"  # a DINO-style file: no classifier
-        torch.save({k: v for k, v in build_backbone("vit_small", 1000).state_dict().items() if not k.startswith("head.")},
+        weights = tmp_path / "dino_vitbase16_pretrain.pth"  # a DINO-style file: no classifier
+        torch.save({k: v for k, v in build_backbone("vit_base", 1000).state_dict().items() if not k.startswith("head.")},
                    weights)
         extra = [f"backbone.weights={weights}"]
     cfg = _small(name, trees, extra)

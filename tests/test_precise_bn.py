@@ -32,6 +32,9 @@ class _Toy(nn.Module):
     def render(self, batch, x):
         return x
 
+    def mvnet_forward(self, images, views, batch=None):
+        return self.mvnet(images, views)
+
 
 def test_running_stats_are_the_plain_average_of_the_batches():
     torch.manual_seed(0)

@@ -149,7 +149,7 @@ def stage_train_step(dry: bool) -> dict:
                         with timer.stage("render"):
                             images = model.render(batch, *views)
                         with timer.stage("backbone"):
-                            logits, _ = model.classify(images, views)
+                            logits, _ = model.classify(images, views, batch)
                             loss = torch.nn.functional.cross_entropy(logits, batch["labels"].to(dev))
                         timer.backward(loss, views, images)
                         with timer.stage("optimizer"):

@@ -3,8 +3,9 @@
 Reads every run and evaluation below the folders (``mvtn-train`` and ``mvtn-eval`` run dirs, sweep
 dirs), fills each row of ``paper_tables.yaml`` from the runs that match it, prints the Markdown
 and writes ``report.md`` / ``report.json`` into ``--out`` (default: ``outputs/report``). Without a
-folder it prints the tables with what each row needs. A missing folder or a malformed tables file:
-one line on stderr, exit code 2.
+folder it prints the tables with what each row needs; ``--paper`` prints the paper's numbers alone
+(each with where the paper gives it: the text of ``docs/paper.md``). A missing folder or a
+malformed tables file: one line on stderr, exit code 2.
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import sys
 
 from ..engine.compare import CompareError, find_runs
 from ..engine.provenance import package_version
-from ..engine.report import TABLES_FILE, ReportError, load_tables, report, to_markdown, write
+from ..engine.report import TABLES_FILE, ReportError, load_tables, paper_markdown, report, to_markdown, write
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -21,6 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("folders", nargs="*", metavar="DIR", help="folders of finished runs, sweeps and evaluations")
     p.add_argument("--tables", default=str(TABLES_FILE), help="the tables file (default: the packaged paper_tables.yaml)")
     p.add_argument("--out", default="outputs/report", help="folder for report.md / report.json")
+    p.add_argument("--paper", action="store_true", help="print the paper's numbers alone (no runs read, nothing written)")
     p.add_argument("--version", action="version", version=f"mvtn-report (mvtn-exp {package_version()})")
     return p
 
@@ -29,6 +31,9 @@ def main(argv=None) -> None:
     args = build_parser().parse_args(argv)
     try:
         tables = load_tables(args.tables)
+        if args.paper:
+            print(paper_markdown(tables), end="")
+            return
         runs = find_runs(args.folders)
         result = report(tables, runs)
         md, _ = write(result, args.out)

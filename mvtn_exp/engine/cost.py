@@ -51,7 +51,7 @@ def flops_per_shape(model, batch: dict) -> dict[str, float]:
             views = tuple(v.detach() for v in model.select(batch))
             images = model.render(batch, *views)
             with FlopCounterMode(display=False) as c_count:
-                model.mvnet(images, views)
+                model.mvnet_forward(images, views, batch)
     finally:
         model.train(was)
     return {"flops_selector_per_shape": g_count.get_total_flops() / B,

@@ -54,7 +54,7 @@ def recalibrate(model, batches: Iterable[dict], n: int) -> int:
                 if used >= n:
                     break
                 views = model.select(batch)
-                model.mvnet(model.render(batch, *views), views)
+                model.mvnet_forward(model.render(batch, *views), views, batch)
                 used += 1
     finally:
         for m, momentum in zip(bns, momenta):

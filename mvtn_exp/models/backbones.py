@@ -4,7 +4,7 @@
   ``state_dict`` keys and shapes are identical to torchvision's, so a torchvision
   ``.pth`` file loads with ``load_state_dict(strict=True)``.
 * ``SmallCNN`` / ``small_cnn``: a fast CPU backbone for tests and quick experiments.
-* ``vit_tiny`` / ``vit_small``: Vision Transformers with timm's key names (``vit.py``).
+* ``vit_tiny`` / ``vit_small`` / ``vit_base``: Vision Transformers with timm's key names (``vit.py``).
 
 Every model maps images ``[N, C, H, W] -> [N, num_classes]`` and exposes
 ``feature_dim`` plus ``features(x) -> [N, feature_dim]`` (the pooled vector before ``fc``).
@@ -229,9 +229,11 @@ def load_weights(model: nn.Module, path: PathLike) -> nn.Module:
 
 
 def _strip_wrapper(sd: dict, own: Mapping) -> dict:
-    """``sd`` with a ``module.`` and then a ``backbone.`` prefix removed (keys without it dropped),
-    each only when no key of ``sd`` matches ``own`` as it is."""
-    for prefix in ("module.", "backbone."):
+    """``sd`` with a ``module.``, then an ``mvnet.backbone.`` (C's backbone in an ``mvtn-train``
+    checkpoint: a finished run's backbone as the start of another, the paper's FSL pretraining)
+    and then a ``backbone.`` prefix removed (keys without it dropped), each only when no key of
+    ``sd`` matches ``own`` as it is."""
+    for prefix in ("module.", "mvnet.backbone.", "backbone."):
         if not any(k in own for k in sd) and any(k.startswith(prefix) for k in sd):
             sd = {k[len(prefix):]: v for k, v in sd.items() if k.startswith(prefix)}
     return sd
@@ -283,12 +285,14 @@ BACKBONES: dict[str, Callable[..., nn.Module]] = {
     "small_cnn": small_cnn,
     "vit_tiny": _vit("vit_tiny"),
     "vit_small": _vit("vit_small"),
+    "vit_base": _vit("vit_base"),
 }
 
 
 # ``feature_dim`` of each registered backbone as built by ``build_backbone`` (checked in the tests),
 # for settings validated before anything is built
-FEATURE_DIMS = {"resnet18": 512, "resnet34": 512, "resnet50": 2048, "small_cnn": 256, "vit_tiny": 192, "vit_small": 384}
+FEATURE_DIMS = {"resnet18": 512, "resnet34": 512, "resnet50": 2048, "small_cnn": 256, "vit_tiny": 192, "vit_small": 384,
+                "vit_base": 768}
 
 
 def build_backbone(name: str, num_classes: int, weights: Optional[PathLike] = None,
@@ -307,7 +311,8 @@ register = OPTIONS["backbone"].register
 class BackboneConfig(OptionConfig):
     """The 2D backbone shared over views. ``weights``: published weights by name (``imagenet``:
     ``models/pretrained.py``, downloaded once into torch's hub cache and hash-checked) or a local
-    torchvision/timm-style state_dict file. ``normalize``: the input scaling the renders get before the backbone:
+    torchvision/timm-style state_dict file, or a finished run's ``best.pt`` / ``last.pt`` (its C's
+    backbone: the paper's FSL pretraining, phase 2). ``normalize``: the input scaling the renders get before the backbone:
     ``imagenet`` ((x - mean) / std with ImageNet's mean and std, what pretrained weights were
     trained on), ``none`` (the renders' [0, 1]), ``auto`` (imagenet when ``weights`` is given)."""
 

@@ -106,8 +106,10 @@ class MVCNN(nn.Module):
         return loss_fn(logits, labels)
 
 
-class LateFusion(MVCNN):
-    """Late fusion: classify every view with the shared head, then average the M logits.
+class LogitMean(MVCNN):
+    """Score averaging: classify every view with the shared head, then average the M logits
+    (``mvnet=logit_mean``; not the paper's late fusion, which is ``mvnet=late_fusion``,
+    ``models/late_fusion.py``).
 
     Same interface as MVCNN; ``features [B, feature_dim]`` is the mean of the view features.
     Note: the head is linear, so without dropout (or in eval mode) the logits equal
@@ -118,7 +120,7 @@ class LateFusion(MVCNN):
     def __init__(self, backbone: Union[nn.Module, str], num_classes: int,
                  weights: Optional[PathLike] = None, pool: str = "mean", dropout: float = 0.0) -> None:
         if pool != "mean":
-            raise ValueError(f"LateFusion averages views; pool must be 'mean', got {pool!r}")
+            raise ValueError(f"LogitMean averages views; pool must be 'mean', got {pool!r}")
         super().__init__(backbone, num_classes, weights=weights, pool="mean", dropout=dropout)
 
     def forward(self, images: Tensor, views=None) -> tuple[Tensor, Tensor]:
@@ -140,7 +142,13 @@ def _viewgcn(*args, **kw) -> MVCNN:
     return ViewGCN(*args, **kw)
 
 
-MULTIVIEW: dict[str, Callable[..., MVCNN]] = {"mvcnn": MVCNN, "late_fusion": LateFusion,
+def _late_fusion(*args, **kw) -> MVCNN:
+    from .late_fusion import PointLateFusion  # it subclasses MVCNN
+
+    return PointLateFusion(*args, **kw)
+
+
+MULTIVIEW: dict[str, Callable[..., MVCNN]] = {"mvcnn": MVCNN, "logit_mean": LogitMean, "late_fusion": _late_fusion,
                                               "view_transformer": _view_transformer, "viewgcn": _viewgcn}
 
 
@@ -148,7 +156,8 @@ def build_multiview(name: str, backbone: Union[nn.Module, str], num_classes: int
     """Build a registered multi-view network: ``[B, M, 3, H, W] -> (logits [B, K], features [B, D])``.
 
     ``kw`` goes to the constructor (``weights``, ``pool``, ``dropout``; ``view_transformer`` also
-    takes ``blocks``, ``heads``, ``width``, ``mlp_ratio``; ``viewgcn`` takes ``k``).
+    takes ``blocks``, ``heads``, ``width``, ``mlp_ratio``; ``viewgcn`` takes ``k``; ``late_fusion``
+    takes ``point_encoder``, ``point_encoder_kwargs``, ``num_points``).
     """
     if name not in MULTIVIEW:
         raise ValueError(f"unknown multi-view network {name!r}; allowed: {', '.join(sorted(MULTIVIEW))}")
@@ -179,10 +188,16 @@ class MVNetConfig(OptionConfig):
         """Constructor arguments beyond the backbone, the class count and the weights."""
         return {"dropout": self.dropout}
 
+    def point_kwargs(self, point_encoder) -> dict:
+        """Constructor arguments from the run's point encoder option (none: C reads no points)."""
+        return {}
+
     def build(self, backbone: str, num_classes: int, weights: Optional[str] = None,
-              input_norm: str = "none") -> MVCNN:
-        """The net; ``input_norm="imagenet"`` scales its input by ImageNet's mean and std."""
-        net = build_multiview(self.name, backbone, num_classes, weights=weights, **self.kwargs())
+              input_norm: str = "none", point_encoder=None) -> MVCNN:
+        """The net; ``input_norm="imagenet"`` scales its input by ImageNet's mean and std;
+        ``point_encoder`` (the run's ``point_encoder`` option) serves a net that reads points."""
+        net = build_multiview(self.name, backbone, num_classes, weights=weights, **self.kwargs(),
+                              **self.point_kwargs(point_encoder))
         return net.normalize_input(IMAGENET_MEAN, IMAGENET_STD) if input_norm == "imagenet" else net
 
     def stage_span(self, epoch: int, epochs: int) -> tuple[int, int]:
@@ -215,10 +230,10 @@ class MVCNNConfig(MVNetConfig):
         return {"pool": self.pool, "dropout": self.dropout}
 
 
-@register("late_fusion")
+@register("logit_mean")
 @dataclass
-class LateFusionConfig(MVCNNConfig):
-    """Late fusion: each view classified on its own, the M logits pooled (``pool``: mean | max)."""
+class LogitMeanConfig(MVCNNConfig):
+    """Score averaging: each view classified on its own, the M logits averaged (``pool``: mean)."""
 
-    name: str = "late_fusion"
+    name: str = "logit_mean"
     pool: str = "mean"

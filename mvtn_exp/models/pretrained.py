@@ -62,6 +62,7 @@ PUBLISHED: dict[tuple[str, str], Published] = {
     ("resnet50", "imagenet"): Published(f"{_TV}/resnet50-0676ba61.pth", "0676ba61", "torchvision IMAGENET1K_V1"),
     ("vit_tiny", "imagenet"): Published(f"{_DEIT}/deit_tiny_patch16_224-a1311bcf.pth", "a1311bcf", "DeiT-Ti, ImageNet-1k"),
     ("vit_small", "imagenet"): Published(f"{_DEIT}/deit_small_patch16_224-cd65a155.pth", "cd65a155", "DeiT-S, ImageNet-1k"),
+    ("vit_base", "imagenet"): Published(f"{_DEIT}/deit_base_patch16_224-b5f2ef4d.pth", "b5f2ef4d", "DeiT-B, ImageNet-1k"),
 }
 SOURCES = tuple(sorted({source for _, source in PUBLISHED}))
 

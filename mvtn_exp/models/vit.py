@@ -1,15 +1,16 @@
-"""Vision Transformers as view backbones: ``vit_tiny`` and ``vit_small`` (patch 16).
+"""Vision Transformers as view backbones: ``vit_tiny``, ``vit_small`` and ``vit_base`` (patch 16).
 
 ``[N, 3, H, W] -> [N, num_classes]``; ``features(x) -> [N, feature_dim]`` is the class token
-after the last block and LayerNorm (192-d tiny, 384-d small). H and W may be any multiple of 16:
+after the last block and LayerNorm (192-d tiny, 384-d small, 768-d base). H and W may be any multiple of 16:
 the position embedding is stored for a 14 x 14 grid (224 px, as in the released weights) and
 resampled bicubically to the input's grid, so one set of weights serves every image size.
 
-``state_dict`` keys and shapes are timm's ``vit_tiny_patch16_224`` / ``vit_small_patch16_224``
+``state_dict`` keys and shapes are timm's ``vit_{tiny,small,base}_patch16_224``
 (``patch_embed.proj``, ``cls_token``, ``pos_embed``, ``blocks.i.{norm1,attn.qkv,attn.proj,norm2,
 mlp.fc1,mlp.fc2}``, ``norm``, ``head``), so such a file loads with ``backbone.weights=PATH``
-through ``backbones.load_weights`` (a head of another class count is left fresh). Nothing is
-downloaded.
+through ``backbones.load_weights`` (a head of another class count is left fresh; MAE's and DINO's
+ViT-B/16 files hold the same names without a head). ``backbone.weights=imagenet`` fetches DeiT's
+(``models/pretrained.py``).
 """
 from __future__ import annotations
 
@@ -138,6 +139,12 @@ def vit_small(num_classes: int = 1000, in_channels: int = 3) -> VisionTransforme
     return VisionTransformer(num_classes, 384, 12, 6, in_channels)
 
 
+def vit_base(num_classes: int = 1000, in_channels: int = 3) -> VisionTransformer:
+    """ViT-Base/16: 768-d, 12 blocks, 12 heads (86,567,656 parameters with 1000 classes); the size
+    of MAE's smallest public weights (the paper's "MAE ViT", L644)."""
+    return VisionTransformer(num_classes, 768, 12, 12, in_channels)
+
+
 @dataclass
 class ViTConfig(BackboneConfig):
     """A ViT backbone: the image size must be a multiple of the patch size."""
@@ -156,3 +163,9 @@ class ViTTinyConfig(ViTConfig):
 @dataclass
 class ViTSmallConfig(ViTConfig):
     name: str = "vit_small"
+
+
+@register("vit_base")
+@dataclass
+class ViTBaseConfig(ViTConfig):
+    name: str = "vit_base"

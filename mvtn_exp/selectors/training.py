@@ -66,7 +66,7 @@ class SelectorTraining:
         with self.timer.stage("render"), torch.set_grad_enabled(grad_render):
             images = model.render(batch, *views)
         with self.timer.stage("backbone"):
-            logits, _ = model.classify(images, views)
+            logits, _ = model.classify(images, views, batch)
             loss = model.mvnet.training_loss(logits, labels, loss_fn)
         return Step(views, images, logits, labels, loss, loss)
 

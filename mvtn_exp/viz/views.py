@@ -209,7 +209,7 @@ def class_averaged_evaluation(model, loader, num_classes: int, azim_c, elev_c, p
         if bool(torch.isnan(azim).any() | torch.isnan(elev).any()):
             raise ValueError("class_averaged_evaluation: a shape's class has no mean views (NaN)")
         images = model.render(batch, azim, elev, dist)
-        pred = model.mvnet(images, (azim, elev, dist))[0].argmax(1).cpu()
+        pred = model.mvnet_forward(images, (azim, elev, dist), batch)[0].argmax(1).cpu()
         conf.index_put_((labels, pred), torch.ones_like(pred), accumulate=True)
     return summarize(conf)
 
