@@ -74,6 +74,7 @@ def test_quick_benchmark_cli(tmp_path):
         assert (r[3] == "n/a (not FLOPs)") == r[0].startswith("R ")
     c1, c4 = (float(r[3]) for r in modules if r[0] == "C MVCNN, ResNet-18")
     assert math.isclose(c4, 4 * c1, rel_tol=0.01)  # FLOPs per shape grow with the views (3 digits printed)
+    assert len(_table(md, "The paper's Table 12")) == 6 and len(_table(md, "The paper's Table 13")) == 5
     scaling = _table(md, "Scaling curves")
     assert {(r[0], r[1]) for r in scaling} == {(c, m) for c in ("faces", "pixels", "views", "batch")
                                                 for m in ("hard", "soft smooth")}
@@ -90,6 +91,31 @@ def test_quick_benchmark_cli(tmp_path):
         assert row["peak_mib"] is not None and row["peak_mib"] >= 0
     assert all(_positive_finite(t) for r in data["resnet"] for t in r["fwd_bwd_s"])
     assert _positive_finite(data["meta"]["elapsed_s"])
+
+
+def test_the_papers_time_and_memory_tables_beside_ours():
+    """The paper's Tables 12 and 13 (L728-L790) as rows: our parameters and FLOPs of the same
+    networks (exact where the architecture is the paper's), the paper's numbers beside them."""
+    from mvtn_exp.bench.paper_modules import PAPER_T12, markdown, paper_module_rows
+    from mvtn_exp.models.point_encoders import PaperPointNet
+
+    res = paper_module_rows(True, "cpu", repeats=1, budget_s=0.01)
+    t12 = {r["module"]: r for r in res["t12"]}
+    assert set(t12) == set(PAPER_T12)
+    assert t12["PointNet"]["params"] == sum(p.numel() for p in PaperPointNet(40).parameters()) == 3_471_473
+    # G's regressor (the official one at M = 12, b = 40) is the paper's 9.09 K; G whole within 1% of
+    # the paper's PointNet plus that regressor
+    assert t12["MVTN* (regressor)"]["params"] == 9_092  # the paper: 9.09 K
+    assert abs(t12["MVTN° (PointNet + regressor)"]["params"] - (3.47e6 + 9.09e3)) / 3.48e6 < 0.01
+    assert abs(t12["PointNet"]["flops"] / PAPER_T12["PointNet"][0] - 1) < 0.03  # 2,048 points: the paper's FLOPs
+    assert t12["MVTN° (PointNet + regressor)"]["flops"] > t12["PointNet"]["flops"] > 1e3 * t12["MVTN* (regressor)"]["flops"]
+    t13 = {(r["module"], r["M"]): r for r in res["t13"]}
+    assert {m for m, _ in t13} == {"R points", "R meshes", "MVCNN ResNet-18", "G PointNet", "G DGCNN"}
+    # C's FLOPs grow with the views: 4 of 12 at the same image size
+    assert t13[("MVCNN ResNet-18", 4)]["flops"] == pytest.approx(t12["MVCNN"]["flops"] / 3, rel=1e-4)  # (+ one head)
+    assert t13[("R points", 4)]["flops"] is None and all(r["ms"] > 0 for r in res["t12"] + res["t13"])
+    md = markdown(res, "cpu")
+    assert "| PointNet | 2048 points | 3.47 / 3.49 |" in md and "| MVTN* (regressor) | point features given | 0.00909 / 0.00909 |" in md
 
 
 def _compare(mesh, size, views):

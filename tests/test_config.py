@@ -54,6 +54,9 @@ PAPER = {
     "paper_noise_baseline": ("scanobjectnn", "noisy", "mvcnn", 8, 100, 1e-3),
     "paper_scene_optimisation": ("scanobjectnn", "optimized", "mvcnn", 8, 100, 1e-3),  # L504
     "paper_resnet50_pretraining": ("scanobjectnn", "mvtn_spherical", "mvcnn", 8, 100, 3e-4),  # L629
+    "paper_color": ("modelnet40", *_GCN), "paper_distance": ("modelnet40", "spherical", "viewgcn", 12, 85, 1e-3),  # L1170
+    "paper_light": ("modelnet40", "mvtn_circular", "mvcnn", 12, 100, 3e-4),  # L1166
+    "paper_mvtn_variants": ("modelnet40", "mvtn_direct", "mvcnn", 12, 100, 3e-4),
 }
 # files the user gives on the command line (placeholders in the experiment file)
 REQUIRED = {"paper_view_transfer": ["selector.from_ckpt=run/best.pt"]}
@@ -115,7 +118,8 @@ def test_every_job_of_a_sweep_experiment_composes(name):
         cfg = OmegaConf.to_object(c).validate()
         seen.add((cfg.views, cfg.selector.name, cfg.mvnet.name, cfg.backbone.name, cfg.point_encoder.name,
                   getattr(cfg.selector, "learn_distance", None), cfg.dataset.variant, cfg.renderer.mode, cfg.image_size, cfg.seed,
-                  getattr(cfg.selector, "objective", None), cfg.backbone.weights))
+                  getattr(cfg.selector, "objective", None), cfg.backbone.weights, cfg.renderer.train_color,
+                  cfg.renderer.train_light, cfg.selector.distance))
     assert len(seen) == len(checked)  # every job is a different setting
     text = (CONF / "experiment" / f"{name}.yaml").read_text()
     assert f"{len(jobs)} jobs" in text

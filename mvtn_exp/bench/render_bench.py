@@ -252,6 +252,7 @@ class Results:
     compile_first_s: dict = field(default_factory=dict)  # shading -> seconds of the first compiled call
     edges: list = field(default_factory=list)
     modules: list = field(default_factory=list)
+    paper_modules: dict = field(default_factory=dict)
     scaling: list = field(default_factory=list)
     paper_scale: dict = field(default_factory=dict)
     targets: list = field(default_factory=list)
@@ -466,6 +467,7 @@ class Bench:
         out.append(("soft edge error", self.job_edge_error))
         if self.opts.modules:
             out.append(("module table", self.job_modules))
+            out.append(("the paper's time and memory tables", self.job_paper_modules))
         if self.opts.scaling:
             out.append(("scaling curves: time", self.job_scaling_time))
         return out
@@ -489,6 +491,12 @@ class Bench:
         from .modules import module_rows  # modules.py builds on this file's helpers
 
         self.res.modules = module_rows(self.opts.quick, self.dev, self.opts.repeats, self.opts.time_budget_s, self.opts.seed)
+
+    def job_paper_modules(self) -> None:
+        from .paper_modules import paper_module_rows  # paper_modules.py builds on this file's helpers
+
+        self.res.paper_modules = paper_module_rows(self.opts.quick, self.dev, self.opts.repeats, self.opts.time_budget_s,
+                                                   self.opts.seed)
 
     def job_speed_mode(self) -> None:
         self.res.meta["timing_malloc"] = ("glibc mmap threshold 32 MiB, trim 64 MiB (set with mallopt)"
@@ -719,6 +727,10 @@ def to_markdown(res: Results) -> str:
         from .modules import markdown as modules_markdown
 
         parts.append(modules_markdown(res.modules))
+    if res.paper_modules:
+        from .paper_modules import markdown as paper_modules_markdown
+
+        parts.append(paper_modules_markdown(res.paper_modules, m["device"]))
     if res.paper_scale:
         from . import paper_scale
 

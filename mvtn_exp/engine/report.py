@@ -284,6 +284,9 @@ def paper_markdown(tables: list[Table]) -> str:
     parts = []
     for t in tables:
         parts.append(f"### {t.title}\n\n`+experiment={t.experiment}`; needs {t.needs}\n")
+        if t.setup:
+            stated = ", ".join(f"`{k}={v}`" for k, v in t.setup.items())
+            parts.append(f"The paper's setup, which the file runs: {stated} ({t.setup_cite}).\n")
         lines = ["| row | paper (best of 4) | paper mean ± std | where in the paper | command |", "|---|---|---|---|---|"]
         for row in t.rows:
             r = {"paper": row.paper, "paper_mean": row.paper_mean, "paper_std": row.paper_std, "cite": row.cite}
