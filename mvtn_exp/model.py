@@ -109,7 +109,11 @@ class MVTN(nn.Module):
         return self.renderer(shapes, azim, elev, dist)
 
     def render(self, batch: dict, azim, elev, dist):
-        """R: the batch's shapes seen from ``[B, M]`` views -> images ``[B, M, 3, H, W]``."""
+        """R: the batch's shapes seen from ``[B, M]`` views -> images ``[B, M, 3, H, W]``; for a C that
+        reads no images (``mvnet.reads_images`` False: a point classifier) nothing is rendered and
+        the images are ``[B, M, 3, 0, 0]``."""
+        if not getattr(self.mvnet, "reads_images", True):
+            return azim.new_zeros(*azim.shape, 3, 0, 0)
         return self.render_output(batch, azim, elev, dist).images
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:

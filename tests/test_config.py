@@ -37,8 +37,9 @@ def test_required_groups_exist():
 @pytest.mark.parametrize("group", [g for g in GROUPS if g != "paths"])
 def test_every_group_option_composes(group):
     for option in _options(group):
-        # (the paper's late fusion takes fixed views: not the default learned ones)
-        cfg = _compose([f"{group}={option}", *(["selector=circular"] if (group, option) == ("mvnet", "late_fusion") else [])])
+        # (the paper's late fusion and the point classifier take fixed views: not the default learned ones)
+        fixed_views = group == "mvnet" and option in ("late_fusion", "point_classifier")
+        cfg = _compose([f"{group}={option}", *(["selector=circular"] if fixed_views else [])])
         if hasattr(getattr(cfg, group), "name"):
             assert option.startswith(getattr(cfg, group).name), (group, option)
 
@@ -57,6 +58,7 @@ PAPER = {
     "paper_color": ("modelnet40", *_GCN), "paper_distance": ("modelnet40", "spherical", "viewgcn", 12, 85, 1e-3),  # L1170
     "paper_light": ("modelnet40", "mvtn_circular", "mvcnn", 12, 100, 3e-4),  # L1166
     "paper_mvtn_variants": ("modelnet40", "mvtn_direct", "mvcnn", 12, 100, 3e-4),
+    "paper_point_classifiers": ("modelnet40", "circular", "point_classifier", 1, 100, 1e-3),
 }
 # files the user gives on the command line (placeholders in the experiment file)
 REQUIRED = {"paper_view_transfer": ["selector.from_ckpt=run/best.pt"]}

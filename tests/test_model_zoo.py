@@ -541,3 +541,33 @@ def test_the_papers_scene_optimisation_rules_steps_and_evaluation():
     assert built(objective="max_ce").eval_objective == "margin"
     with pytest.raises(ValueError, match="selector.eval_objective"):
         OptimizedConfig(eval_objective="max_ce").validate()
+
+
+def test_point_classifier_reads_points_alone_and_nothing_is_rendered(cache, tmp_path, monkeypatch):
+    """mvnet=point_classifier: the point encoder classifies the points (the occlusion table's PointNet
+    and DGCNN rows); the images are not read, so R never runs; learned views and 2D weights are refused."""
+    from mvtn_exp.models.point_classifier import PointClassifier
+    from mvtn_exp.render.renderer import MultiViewRenderer
+
+    torch.manual_seed(0)
+    net = PointClassifier(None, 5, point_encoder="pointnet").eval()
+    pts = torch.rand(2, 64, 3)
+    logits, feats = net(torch.rand(2, 3, 3, 8, 8), None, points=pts)
+    torch.testing.assert_close(logits, net.point_encoder(pts))
+    torch.testing.assert_close(feats, logits)
+    same, _ = net(torch.zeros(2, 3, 3, 8, 8), None, points=pts)  # other images: the same logits
+    assert torch.equal(same, logits)
+    with pytest.raises(ValueError, match="needs points"):
+        net(torch.rand(2, 3, 3, 8, 8), None)
+    calls = []
+    real = MultiViewRenderer.forward
+    monkeypatch.setattr(MultiViewRenderer, "forward", lambda *a, **k: calls.append(1) or real(*a, **k))
+    cfg = _tiny(cache, mvnet={"name": "point_classifier", "num_points": 64}, selector={"name": "circular"})
+    metrics = train(cfg, tmp_path / "run")
+    assert metrics["steps"] > 0 and calls == []  # trained and tested without a render
+    for selector, needle in (({"name": "mvtn_spherical"}, "selector=mvtn_spherical learns views"),):
+        with pytest.raises(ValueError, match=needle):
+            as_config(_tiny(cache, mvnet={"name": "point_classifier"}, selector=selector))
+    with pytest.raises(ValueError, match="no 2D backbone"):
+        as_config(_tiny(cache, mvnet={"name": "point_classifier"}, selector={"name": "circular"},
+                        backbone={"name": "resnet18", "weights": "imagenet"}))

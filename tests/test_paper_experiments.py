@@ -19,7 +19,8 @@ from omegaconf import OmegaConf
 from mvtn_exp.engine import train
 from mvtn_exp.engine.evaluation import evaluate_checkpoint
 from mvtn_exp.engine.trainer import config_dict
-from mvtn_exp.schema import EvalConfig, RetrievalEvalConfig, RotationEvalConfig, register_configs
+from mvtn_exp.schema import (EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig,
+                             register_configs)
 
 register_configs()
 CONF = Path(__file__).resolve().parents[1] / "mvtn_exp" / "conf" / "experiment"
@@ -70,7 +71,7 @@ def test_the_paper_files_start_resnets_from_imagenet_and_g_on_the_papers_pointne
     for name in PAPER:
         with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
             cfg = compose("train", overrides=[f"+experiment={name}"])
-        if name.startswith("paper_") and cfg.backbone.name.startswith("resnet"):
+        if name.startswith("paper_") and cfg.backbone.name.startswith("resnet") and cfg.mvnet.name != "point_classifier":
             assert cfg.backbone.weights == "imagenet", name
         # G's PointNet as the paper's (L736; view transfer takes G from the MVCNN run it names)
         if name.startswith("paper_") and cfg.selector.name.startswith("mvtn") and name != "paper_view_transfer":
@@ -140,10 +141,19 @@ def test_paper_experiment_trains_and_evaluates(name, trees, mvcnn_run, tmp_path)
     assert len(m["history"]) == cfg["epochs"]
     if cfg["mvnet"]["name"] == "viewgcn":  # stage 2 trained and the best checkpoint is the whole graph
         assert int(torch.load(tmp_path / "run" / "best.pt", weights_only=False)["model"]["mvnet.stage"]) == 2
+    if name == "paper_modelnet40_classification":
+        # G as metrics.json records it: the paper's PointNet (3.47-3.49 M, L736) plus its regressor
+        # (9.09 K, Table 12, L742), within 1%
+        assert abs(m["cost"]["params_selector"] / (3.47e6 + 9.09e3) - 1) < 0.01, m["cost"]["params_selector"]
     if name == "paper_modelnet40_classification":  # the rotation table's evaluation of its best.pt
         ev = evaluate_checkpoint(EvalConfig(ckpt=str(tmp_path / "run" / "best.pt"), robustness="rotation", progress=False,
                                             rotation=RotationEvalConfig(thetas=[90.0], repeats=1)), tmp_path / "eval")
         assert 0.0 <= ev["rotation"]["90"]["mean_acc"] <= 1.0
+    if name == "paper_point_classifiers":  # the occlusion table's point baselines: cut points, classified
+        ev = evaluate_checkpoint(EvalConfig(ckpt=str(tmp_path / "run" / "best.pt"), robustness="occlusion", progress=False,
+                                            occlusion=OcclusionEvalConfig(ratios=[0.0, 0.5])), tmp_path / "eval")
+        assert 0.0 <= ev["occlusion"]["0.5"]["mean_acc"] <= 1.0
+        assert m["cost"]["params_mvnet"] > 0 and m["cost"]["render_ms_per_shape"] < 1.0  # nothing rendered
     if name == "paper_shapenet_retrieval":  # the retrieval table's evaluation
         ev = evaluate_checkpoint(EvalConfig(ckpt=str(tmp_path / "run" / "best.pt"), task="retrieval", progress=False,
                                             retrieval=RetrievalEvalConfig(dim=4, list_length=3)), tmp_path / "eval")

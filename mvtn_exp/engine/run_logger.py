@@ -34,7 +34,7 @@ class RunLogger:
     def views(self, tag: str, images: torch.Tensor, step: int, shapes: int = 4) -> None:
         """A grid of the rendered views of the first ``shapes`` shapes (``images [B, M, 3, H, W]``),
         one row per shape."""
-        if self.writer is None or not self.cfg.images:
+        if self.writer is None or not self.cfg.images or images.numel() == 0:  # (a point classifier renders none)
             return
         imgs = images[:shapes].detach().float().cpu().clamp(0, 1)
         grid = view_grid(imgs.reshape(-1, *imgs.shape[2:]), cols=imgs.shape[1])  # [H', W', 3] uint8
