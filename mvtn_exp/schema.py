@@ -61,6 +61,9 @@ def resolve_device(device: str | None) -> str:
 
 VIEW_FAMILIES = ("cup", "decoys", "slab")  # dataset=synthetic_views families (data/synthetic_views.py FAMILIES)
 
+SCANOBJECTNN_FORMATS = ("h5", "object_dataset")  # the h5 release; the per-object files
+
+
 @dataclass
 class DatasetConfig:
     """Which shapes. ``root``: the dataset folder (synthetic: its cache folder).
@@ -75,7 +78,9 @@ class DatasetConfig:
     and counted. ``cache_dir``: where preprocessed real datasets are cached. ShapeNet:
     ``split_csv`` (default ``<root>/all.csv``, the SHREC17 split) and ``synset_dict`` (default
     ``<root>/shapenet_synset_dict_v2.json``, synset id -> name). ModelNet40 ``format``: ``off``
-    (meshes), ``normal_resampled`` or ``ply_hdf5_2048`` (the PointNet authors' point releases).
+    (meshes), ``normal_resampled`` or ``ply_hdf5_2048`` (the PointNet authors' point releases);
+    ScanObjectNN ``format``: ``h5`` (the h5 release, 2,048 points per cloud) or ``object_dataset``
+    (the per-object files, any ``num_points``: the paper's 5,000, L251; obj_bg and obj_only only).
     ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``family``: the synthetic_views
     family (cup, decoys, slab; empty for every other dataset); ``val_fraction``: share of
     the official train split held out for model selection when a dataset has no val split.
@@ -107,7 +112,15 @@ class DatasetConfig:
         one_of("dataset.name", self.name, DATASETS)
         one_of("dataset.shape", self.shape, SHAPES)
         one_of("dataset.rotate", self.rotate, ROTATIONS)
-        one_of("dataset.format", self.format, ("off", "normal_resampled", "ply_hdf5_2048"))
+        if self.name == "scanobjectnn":
+            if self.format == "off":  # (configs stored before ScanObjectNN had formats: the h5 release)
+                self.format = "h5"
+            one_of("dataset.format", self.format, SCANOBJECTNN_FORMATS)
+            if self.format == "object_dataset" and self.variant == "pb_t50_rs":
+                raise ValueError("dataset.format=object_dataset: the per-object files hold obj_bg and obj_only; "
+                                 "pb_t50_rs exists only in the h5 release (dataset.format=h5)")
+        else:
+            one_of("dataset.format", self.format, ("off", "normal_resampled", "ply_hdf5_2048"))
         if self.name == "synthetic_views":
             one_of("dataset.family", self.family or "cup", VIEW_FAMILIES)
         elif self.family:

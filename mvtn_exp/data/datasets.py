@@ -19,6 +19,7 @@ from .modelnet_points import ModelNetPoints
 from .scanobjectnn import LAYOUT as SCANOBJECTNN_LAYOUT
 from .scanobjectnn import VARIANTS as SCANOBJECTNN_VARIANTS
 from .scanobjectnn import ScanObjectNN
+from .scanobjectnn_objects import ScanObjectNNObjects
 from .shapenet import LAYOUT as SHAPENET_LAYOUT
 from .shapenet import ShapeNetCore
 from .synthetic import SyntheticShapes
@@ -75,6 +76,9 @@ def build_dataset(cfg: DatasetConfig, split: str, progress: bool = True) -> Data
         if cfg.shape != "points":
             raise ValueError("dataset.shape=mesh: ScanObjectNN holds point clouds only; use dataset.shape=points")
         _require_root(cfg)
+        if cfg.format == "object_dataset":  # the per-object files: OBJ_BG / OBJ_ONLY at any point count
+            return ScanObjectNNObjects(cfg.root, split, variant=cfg.variant, num_points=cfg.num_points,
+                                       val_fraction=cfg.val_fraction, seed=cfg.seed, strict=cfg.strict)
         return ScanObjectNN(cfg.root, split, variant=cfg.variant, num_points=cfg.num_points,
                             val_fraction=cfg.val_fraction, seed=cfg.seed, strict=cfg.strict)
     if cfg.name == "shapenet":
