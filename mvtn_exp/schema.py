@@ -359,7 +359,7 @@ class RetrievalEvalConfig:
     """Retrieval: features before the classifier, LFDA to ``dim`` (fitted on the database), every
     test shape queries the whole official train split (val included where it was carved out of
     train); ``k``: LFDA's local-scaling neighbour, ``scaling``: class (Sugiyama's, default) | all
-    (the k-th neighbour among all samples, as before 2026-12-01); ``list_length`` for SHREC-style
+    (the k-th neighbour among all samples, the former default); ``list_length`` for SHREC-style
     metrics."""
 
     dim: int = 128

@@ -266,8 +266,10 @@ def test_presets_compose_and_state_their_measured_cost(name):
     assert text.startswith("# @package _global_")
     if name == "paper":
         assert cfg.views == 12 and cfg.image_size == 224 and cfg.selector.regressor == "official"
-    else:  # on the measured front: the comment carries its accuracy and time per shape
-        assert "test accuracy" in text and "ms per shape" in text and "tradeoff_synthetic" in text
+    else:  # on the measured front: the comment names the study, whose page gives its accuracy and cost
+        assert "tradeoff_synthetic" in text and "docs/results/tradeoff.md" in text
+        page = (CONF.parents[1] / "docs" / "results" / "tradeoff.md").read_text()
+        assert f"`+preset={name}`" in page and "ms per shape" in page
         assert cfg.views == 1 and cfg.image_size == 32
         # the front's ends: fixed views on the hard renderer, learned views on the soft one
         assert cfg.selector.learned == (name == "balanced") and cfg.renderer.mode == ("soft" if name == "balanced" else "hard")

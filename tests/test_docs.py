@@ -24,7 +24,8 @@ How a command is checked, without running it (in-process, so the whole file take
 Placeholder paths (``ckpt=outputs/train/runs/RUN/best.pt``) compose like real ones: no file is
 read. ``device=cuda`` composes as on a CUDA machine (CUDA is reported available while checking).
 Also: the Python blocks run, internal links and their #anchors resolve, and README.md stays a
-manual (at most 400 lines, no dated entries, a link to every docs page).
+manual (Results at most 600 words in at most three tables, the held-out row first, no commit
+hashes; no dated entries; a link to every docs page).
 """
 from __future__ import annotations
 
@@ -465,7 +466,13 @@ def test_internal_link_resolves(path, target):
 def test_readme_is_a_manual():
     text = README.read_text()
     lines = text.splitlines()
-    assert len(lines) <= 400, f"README.md has {len(lines)} lines (at most 400: move detail to docs/)"
+    results = text[text.index("## Results\n"):text.index("\n## ", text.index("## Results\n") + 1)]
+    words = len(results.split())
+    assert words <= 600, f"README.md's Results has {words} words (at most 600: move detail to docs/results/)"
+    assert len(re.findall(r"^\|---", results, flags=re.M)) <= 3, "README.md's Results: at most three tables"
+    first_row = next(ln for ln in results.splitlines() if ln.startswith("| `"))
+    assert "held out" in first_row, f"README.md's Results: the held-out row first, got {first_row[:60]!r}"
+    assert not re.search(r"\b[0-9a-f]{7}\b", results), "README.md's Results names commits (they stay in docs/results)"
     dated = [n for n, ln in enumerate(lines, 1) if re.search(r"2026-", ln)]
     assert not dated, f"dated entries or headings on README.md lines {dated}"
     headings = [ln for ln in lines if ln.startswith("#") and re.search(r"20\d\d-\d\d", ln)]

@@ -1,10 +1,9 @@
 """What learned views cost per training step, against fixed views at the same M, in one process.
 
-Issue 9's two training-scale targets are ratios: a learned-views epoch at most 1.5 x a
-fixed-views epoch at the same M, and rendering at most 25% of the default training step. Timed
-as two separate training runs on this shared 2-core machine they moved by 2 x from one try to
-the next (learned / fixed at M = 1: 0.93, 1.83 and 1.43 in three tries of three epochs each).
-This benchmark times both sides in one process, on the same batches, alternating which goes
+A learned-views step against a fixed-views step at the same M, and rendering's share of a step,
+are ratios; timed as two separate training runs on a shared machine they move with its load
+(docs/results/training-cost.md). This benchmark times both sides in one process, on the same
+batches, alternating which goes
 first, with the trainer's own step (``train_one_epoch``: augmentation, G's gradient, clipping,
 AdamW) and its stage split (``StepTimer``: G, R and C, forward and backward each), and reports
 medians over rounds.

@@ -101,7 +101,7 @@ def load(path, map_location="cpu") -> dict:
         raise CheckpointMismatch(f"checkpoint {str(path)!r} is {what}, not a checkpoint (mvtn-train writes "
                                  "last.pt / best.pt with torch.save)")
     try:
-        with torch.serialization.safe_globals(NUMPY_ARRAYS):  # checkpoints before 2026-12-01: numpy RNG keys
+        with torch.serialization.safe_globals(NUMPY_ARRAYS):  # older checkpoints hold numpy RNG keys
             payload = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         what = str(exc).splitlines()

@@ -1,10 +1,10 @@
 """Re-estimate C's BatchNorm statistics before each validation (``selector.bn_recalibrate``).
 
-Why (measured on ``synthetic_views``, learned M = 4, seed 2): validation accuracy fell to exactly
-chance (0.125: one class for every shape) for single epochs while training accuracy kept rising
-(for example epoch 9: train 0.41, validation 0.125, loss 3.92). The weights were fine; the
-running statistics of C's BatchNorm layers were not: re-estimated on the training shapes from the
-checkpoint of that epoch, validation accuracy is 0.417 (loss 1.46). The running averages follow
+Why (the measurements: docs/results/finding-the-detail.md): with learned views, validation
+accuracy can fall to chance (one class for every shape) for single epochs while training accuracy
+keeps rising. The weights are fine; the running statistics of C's BatchNorm layers are not:
+re-estimated on the training shapes from that epoch's checkpoint, validation recovers. The
+running averages follow
 the last training batches with momentum 0.1, rendered from G's training-mode views with
 training-time light and colour, while validation renders G's eval-mode views.
 
@@ -15,8 +15,8 @@ augmentation, no gradients). G, C's weights and every random stream are untouche
 checkpoint (and so the test) carries the re-estimated statistics.
 
 ``selector.bn_recalibrate_scope``: ``all`` lets training go on from the re-estimated statistics,
-which changes a learned G's trajectory where G's smoothed probes run C in eval mode (measured:
-three runs on ``synthetic_views`` lost the detail they kept without it); ``eval`` keeps them for
+which changes a learned G's trajectory where G's smoothed probes run C in eval mode; ``eval``
+keeps them for
 validation, the checkpoints' ``model`` and the test only, and puts training's own running
 averages back after each validation (``running_statistics`` / ``restore``; checkpoints carry them
 as ``train_bn`` for an exact resume), so training is bit-identical to a run without re-estimation.

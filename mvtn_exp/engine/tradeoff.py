@@ -61,7 +61,7 @@ def job_rows(sweep_dir, retimed: bool = False, seed: int | None = None) -> list[
         missing = [k for k in COST_FIELDS if k not in (m.get("cost") or {})]
         if missing:
             raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no cost fields {missing[:3]}"
-                                f"{'...' if len(missing) > 3 else ''} (written by runs since 2026-12-02; re-run the job)")
+                                f"{'...' if len(missing) > 3 else ''} (an older run wrote none; re-run the job)")
         r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"], best_val_acc=m.get("best_val_acc"),
                  train_wall_seconds=m.get("train_wall_seconds"))
         if retimed:

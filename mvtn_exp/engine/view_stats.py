@@ -1,5 +1,5 @@
 """How the predicted views spread: across shapes (do all shapes get one view?) and within a shape
-(do a shape's M views collapse onto each other?). Issue 9 asks for both, for learned selectors.
+(do a shape's M views collapse onto each other?), for learned selectors.
 
 ``view_spread``: for each view slot m, the mean angle (degrees) between shape n's camera direction
 and the slot's mean direction over the shapes, averaged over the slots: 0 for a fixed selector,

@@ -1,9 +1,9 @@
 """Several sets of views tried side by side early in training, the one with the lowest loss kept.
 
-Why (measured on ``synthetic_views`` at M = 1, 2026-12-02): whether G finds the class detail is
-decided in the first two to four epochs, before C reads anything, so it is a coin flip per run
-(7 of 15 seeds); and C learns the detail within a few epochs once one consistent view shows it
-(cameras on the cup axis: validation 0.30 after 2 epochs, 0.42 after 3). So a G that holds H
+Why (the measurements: docs/results/finding-the-detail.md): on view-dependent data, whether G
+finds the class detail is decided in the first epochs, before C reads anything, so a single set
+of views finds it in some seeds only; and C learns the detail within a few epochs once one
+consistent view shows it. So a G that holds H
 hypotheses (``selector.hypotheses``; H sets of M views, each starting from its own part of the
 spherical layout and moving on its own share of the smoothed gradient) has H chances, and C,
 trained on every hypothesis's render of every shape, learns the detail from whichever shows it.

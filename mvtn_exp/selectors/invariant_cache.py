@@ -1,8 +1,8 @@
 """A bounded cache of a rotation-invariant function of point clouds, keyed by the cloud's content.
 
 ``mvtn_poi`` scores every point from rotation-invariant neighbourhood descriptors (kNN,
-neighbourhood PCA): 20 of G's 25 ms per training step at 16 shapes x 256 points on this CPU
-(measured 2026-12-02), spent again at every step although the shape's points only turn
+neighbourhood PCA): most of G's time per training step (docs/results/training-cost.md), spent
+again at every step although the shape's points only turn
 (``augment.rotate``). Since the descriptors do not change under a rotation (or a reflection) of the
 centred cloud, they are computed once per shape and looked up afterwards.
 

@@ -310,10 +310,8 @@ class PoiRecipeConfig(PoiConfig):
     training batches before each validation; ``conf/selector/poi.yaml`` also picks the hard
     renderer with a camera light on white shapes (``renderer=hard_camera``; a ``renderer=`` on the
     command line wins). Eight hypotheses race for 8 epochs, pooled, four of them the others' views
-    from the opposite side (``antipodes``): on validation of the tuning data (cup family, 10 seeds)
-    G found the detail in 10 seeds of 10 against 7 for four hypotheses (+22.8 points [+6.7, +38.9],
-    at 2.0 x their time; decoys family, G on 1,024 points: 10 against 4, +18.5 [+2.9, +34.2], at
-    1.4 x), docs/results/finding-the-detail.md. Four, the former default:
+    from the opposite side (``antipodes``); how often G finds the detail with eight, four or one
+    set of views, and at what cost: docs/results/finding-the-detail.md. Four:
     ``selector.hypotheses=4``; one set of views, the cheapest: ``selector.hypotheses=1
     selector.race_epochs=0 selector.antipodes=false``."""
 

@@ -48,8 +48,8 @@ SCALINGS = ("class", "all")
 def local_scaling(X: np.ndarray, y: np.ndarray, k: int = 7, scaling: str = "class") -> np.ndarray:
     """``sigma [n]``: distance from ``x_i`` to its ``k``-th nearest neighbour among the samples of
     its own class (``scaling="class"``, Sugiyama 2007: the affinity is computed class by class; ``k``
-    clamped to ``n_c - 1``, 0 for a one-sample class) or among all samples (``"all"``, what this
-    project did before 2026-12-01; ``k`` clamped to ``n - 1``); floored at ``1e-6 * mean(positive
+    clamped to ``n_c - 1``, 0 for a one-sample class) or among all samples (``"all"``, the
+    former default; ``k`` clamped to ``n - 1``); floored at ``1e-6 * mean(positive
     sigmas)`` (1.0 if every sigma is 0) so duplicates never divide by 0."""
     if scaling not in SCALINGS:
         raise ValueError(f"lfda: scaling must be one of {SCALINGS}, got {scaling!r}")
