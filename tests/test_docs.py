@@ -502,3 +502,31 @@ def test_experiment_files_carry_a_short_header_naming_where_the_result_is(path):
     assert docs and all((ROOT / d).is_file() for d in docs), f"{path.name}: names no existing docs page"
     comments = [ln for ln in lines if ln.lstrip().startswith("#")]
     assert len(comments) <= 12 and not any(re.search(r"\bseed \d+\b.*\d\.\d{3}", c) for c in comments), path.name
+
+
+def test_layout_lists_every_module_under_its_package():
+    """docs/layout.md names every module of the package in its package's block (a new module
+    without a line there fails, naming it)."""
+    text = (ROOT / "docs" / "layout.md").read_text()
+    blocks: dict[str, str] = {}
+    current = None
+    for line in text.splitlines():
+        m = re.match(r"(mvtn_exp/(?:[a-z_]+/|[a-z_]+\.py))\s", line + " ")
+        if m:
+            current = m.group(1)
+            blocks[current] = line
+        elif current and line.startswith(" " * 10):
+            blocks[current] += " " + line.strip()
+        else:
+            current = None
+    package = ROOT / "mvtn_exp"
+    missing = []
+    for path in sorted(package.rglob("*.py")):
+        if path.name == "__init__.py":
+            continue
+        rel = path.relative_to(package)
+        key = f"mvtn_exp/{rel.parent.as_posix()}/" if rel.parent.as_posix() != "." else f"mvtn_exp/{rel.name}"
+        block = blocks.get(key, "")
+        if not re.search(rf"\b{re.escape(path.stem)}\b", block):
+            missing.append(rel.as_posix())
+    assert not missing, f"docs/layout.md does not list {missing}"

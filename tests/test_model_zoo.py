@@ -252,6 +252,11 @@ def test_paper_late_fusion_is_refused_on_views_that_move_with_c(cache, selector,
     as_config(_tiny(cache, mvnet={"name": "late_fusion"}, selector={"name": "optimized", "steps": 0}))  # fixed after all
 
 
+def test_logit_mean_refuses_another_pool_in_the_config_not_when_built(cache):
+    with pytest.raises(ValueError, match="mvnet.pool=max: mvnet=logit_mean averages"):
+        as_config(_tiny(cache, mvnet={"name": "logit_mean", "pool": "max"}))
+
+
 def test_paper_late_fusion_parameters_are_mvcnn_plus_the_papers_pointnet_sized_to_the_view_features():
     from mvtn_exp.models.point_encoders import PaperPointNet
 

@@ -237,3 +237,10 @@ class LogitMeanConfig(MVCNNConfig):
 
     name: str = "logit_mean"
     pool: str = "mean"
+
+    def validate(self) -> "LogitMeanConfig":
+        super().validate()
+        if self.pool != "mean":
+            raise ValueError(f"mvnet.pool={self.pool}: mvnet=logit_mean averages the views' logits (pool=mean only; "
+                             "max pooling of features: mvnet=mvcnn)")
+        return self
