@@ -46,11 +46,11 @@ def parse_seeds(text: str) -> list[int]:
 def _settings(overrides: list[str]) -> dict:
     """The composed ``mvtn-train`` config of ``overrides``, flattened, without run-local keys (a bad
     key is refused as mvtn-train refuses it: one line, exit 2)."""
-    from ..engine.compare import _local
+    from ..engine.run_keys import is_local
     from .common import compose_train_config
 
     cfg = compose_train_config(overrides, prog="mvtn-compare")
-    return {k: v for k, v in flatten(dataclasses.asdict(cfg)).items() if not _local(k)}
+    return {k: v for k, v in flatten(dataclasses.asdict(cfg)).items() if not is_local(k)}
 
 
 def plan_runs(sides: list[str], seeds: list[int], common: list[str], out: Path, keys) -> list[tuple]:

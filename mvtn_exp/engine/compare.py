@@ -43,8 +43,7 @@ from scipy import stats
 from .provenance import machine
 from .sweep import STATUS_FILE
 
-RUN_LOCAL = ("seed", "device", "ckpt_path", "threads", "overwrite", "logger", "paths", "dataset.root", "dataset.cache_dir",
-             "dataset.num_workers")
+from .run_keys import RUN_LOCAL, is_local  # noqa: F401 (RUN_LOCAL re-exported)
 PROTECTED = ("dataset", "epochs", "patience")  # data, its splits and the training length
 
 
@@ -77,10 +76,6 @@ def flatten(node, prefix: str = "") -> dict:
     return out
 
 
-def _local(key: str) -> bool:
-    return any(key == p or key.startswith(p + ".") for p in RUN_LOCAL)
-
-
 def _read_run(path: Path) -> Run:
     """The record of one run dir."""
     metrics_file, status_file = path / "metrics.json", path / STATUS_FILE
@@ -104,7 +99,7 @@ def _read_run(path: Path) -> Run:
     flat = flatten(config)
     prov = metrics.get("provenance") or {}
     commit = (prov["commit"][:7] + ("+dirty" if prov.get("dirty") else "")) if prov.get("commit") else None
-    return Run(path, status, seed=flat.get("seed"), settings={k: v for k, v in flat.items() if not _local(k)},
+    return Run(path, status, seed=flat.get("seed"), settings={k: v for k, v in flat.items() if not is_local(k)},
                metrics=metrics, commit=commit, error=error, machine=machine(prov))
 
 
@@ -162,7 +157,7 @@ def fill_added_keys(runs: list[Run]) -> None:
             continue
         defaults = current_defaults(r.settings)
         for key in sorted(missing):
-            if key in defaults and not _local(key):
+            if key in defaults and not is_local(key):
                 r.settings[key] = defaults[key]
                 r.filled.append(key)
 

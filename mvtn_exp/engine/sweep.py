@@ -12,6 +12,7 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 
 from .run_dir import STATUS_FILE  # status.json: a run's last outcome
+from .run_keys import is_local
 
 COLUMNS = ("test_acc", "test_mean_class_acc", "best_val_acc", "mean_epoch_seconds", "test_view_offset_azim",
            "test_view_offset_elev", "test_view_spread", "test_view_separation")
@@ -47,13 +48,10 @@ def collect(sweep_dir) -> list[dict]:
     return rows
 
 
-# overrides that do not define a setting: the seed (aggregated over), paths and logging
-NOT_A_SETTING = ("seed", "ckpt_path", "device", "dataset.root", "dataset.num_workers", "paths.", "logger.", "hydra.")
-
-
 def _setting(overrides: list[str]) -> str:
-    """The overrides that define a setting: jobs that differ only in ``seed`` are one setting."""
-    keys = [o for o in overrides if not o.split("=", 1)[0].lstrip("+~").startswith(NOT_A_SETTING)]
+    """The overrides that define a setting (``run_keys``: jobs that differ only in ``seed``, the
+    device, threads, paths or logging are one setting)."""
+    keys = [o for o in overrides if not is_local(o.split("=", 1)[0])]
     return ",".join(keys) or "(defaults)"
 
 

@@ -34,7 +34,6 @@ from .sweep import _override_values, _setting, collect, failed_jobs
 COST_FIELDS = ("infer_ms_per_shape", "train_seconds_per_shape", "train_peak_mib", "infer_peak_mib",
                "params_selector", "params_mvnet", "flops_selector_per_shape", "flops_mvnet_per_shape",
                "render_ms_per_shape", "render_pixels_per_shape")
-NOT_SWEPT = ("seed",)
 METRICS = ("test_acc", "best_val_acc")
 
 
@@ -121,8 +120,7 @@ def settings(rows: list[dict], metric: str = "test_acc") -> tuple[list[dict], li
         if r.get("status") == "ok":
             groups.setdefault(_setting(r["overrides"]), []).append(r)
     values = {s: _override_values(m[0]["overrides"]) for s, m in groups.items()}
-    keys = list(dict.fromkeys(k for v in values.values() for k in v if k not in NOT_SWEPT
-                              and _setting([f"{k}=x"]) != "(defaults)"))
+    keys = list(dict.fromkeys(k for v in values.values() for k in v if _setting([f"{k}=x"]) != "(defaults)"))
     swept = [k for k in keys if len({v.get(k, "") for v in values.values()}) > 1] or keys
     out = []
     for s, members in groups.items():
