@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 
-MESH_SUFFIXES = {".off", ".obj", ".ply", ".stl", ".glb", ".gltf"}
 POINT_SUFFIXES = {".npy", ".txt", ".xyz", ".csv"}
 
 

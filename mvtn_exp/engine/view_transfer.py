@@ -10,8 +10,6 @@ resumed run takes G from its own checkpoint and does not read ``from_ckpt`` agai
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 from . import checkpoint
 
 KEYS = ("views", "selector", "point_encoder")
@@ -46,6 +44,3 @@ def freeze_selector(model) -> None:
     model.selector_frozen = True
     model.selector.eval()
 
-
-def source_of(cfg) -> Path | None:
-    return Path(cfg.selector.from_ckpt) if cfg.selector.from_ckpt else None

@@ -23,9 +23,6 @@ from torch import Tensor, nn
 
 from ..render.cameras import direction_angles, view_directions
 
-CANONICAL = ("none", "pca")
-
-
 def pca_frames(points: Tensor) -> Tensor:
     """``points [B, N, 3]`` -> ``R [B, 3, 3]`` (rows: canonical x, y, z in world coordinates; det +1)."""
     p = points.detach().double()
