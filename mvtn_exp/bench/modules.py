@@ -61,7 +61,7 @@ def _net_row(module, setting, net, make_input, device, repeats, budget_s) -> dic
     return _row(module, setting, params, flops, *_time_pair(fwd, fwd_bwd, device, repeats, budget_s), BATCH)
 
 
-class _Regressor(torch.nn.Module):
+class RegressorAlone(torch.nn.Module):
     """G's regressor alone: given point features (and u0), the views (``MVTNSelector.forward`` after the encoder)."""
 
     def __init__(self, g):
@@ -92,7 +92,7 @@ def module_rows(quick: bool, device, repeats: int, budget_s: float, seed: int = 
         pts = torch.randn(BATCH, n, 3, generator=gen).to(device)
         rows.append(_net_row(label, f"M={g_views}, {n} points", g, lambda p=pts: p, device, repeats, budget_s))
         if name == "mvtn_spherical" and n == 256:
-            reg = _Regressor(g)
+            reg = RegressorAlone(g)
             feats = torch.randn(BATCH, g.regressor[0].in_features, generator=gen).to(device)
             rows.append(_net_row("G regressor alone (features given)", f"M={g_views}", reg, lambda f=feats: f, device,
                                  repeats, budget_s))

@@ -21,6 +21,7 @@ from ..models.multiview import build_multiview
 from ..models.point_encoders import PaperPointNetConfig, PointEncoderConfig, build_point_encoder
 from ..options import OPTIONS
 from ..selectors import build_selector
+from .modules import RegressorAlone
 from .render_bench import Views, md_table, med_ms, render_fns, renderer_for, time_runs, torus, torus_points
 
 POINTS = 2048
@@ -80,15 +81,6 @@ def _g(M: int, encoder: PointEncoderConfig):
     return build_selector("mvtn_spherical", M, point_encoder=encoder, regressor="official")
 
 
-class _Regressor(torch.nn.Module):
-    def __init__(self, g):
-        super().__init__()
-        self.regressor = g.regressor
-
-    def forward(self, feats):
-        return torch.tanh(self.regressor(feats))
-
-
 def table12(device, size: int, repeats: int, budget_s: float, seed: int = 0) -> list[dict]:
     gen = torch.Generator().manual_seed(seed)
     pts = torch.randn(1, POINTS, 3, generator=gen).to(device)
@@ -100,7 +92,7 @@ def table12(device, size: int, repeats: int, budget_s: float, seed: int = 0) -> 
             "DGCNN": (build_point_encoder("dgcnn", NUM_CLASSES, **dgcnn.kwargs()), (pts,)),
             "MVCNN": (_Head(build_multiview("mvcnn", "resnet18", NUM_CLASSES), 12), (imgs,)),
             "ViewGCN": (_Head(build_multiview("viewgcn", "resnet18", NUM_CLASSES), 12), (imgs,)),
-            "MVTN* (regressor)": (_Regressor(g), (torch.randn(1, g.regressor[0].in_features, generator=gen).to(device),)),
+            "MVTN* (regressor)": (RegressorAlone(g), (torch.randn(1, g.regressor[0].in_features, generator=gen).to(device),)),
             "MVTN° (PointNet + regressor)": (g, (pts,))}
     rows = []
     for name, (net, x) in nets.items():

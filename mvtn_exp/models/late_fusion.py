@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from ..checks import at_least, one_of
 from .backbones import PathLike
-from .multiview import POOLS, MVCNN, MVCNNConfig, register
+from .multiview import POOLS, MVCNN, MVCNNConfig, register, views_move_with_c
 from .point_encoders import build_point_encoder
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -88,10 +88,10 @@ class LateFusionConfig(MVCNNConfig):
     def check(self, cfg: "TrainConfig") -> None:
         """The paper fuses on fixed views; a selector that learns or refines its views against C
         calls C without the shape's points."""
-        learns = cfg.selector.learned
-        if learns or cfg.selector.uses_camera_gradient():
+        moves = views_move_with_c(cfg)
+        if moves:
             raise ValueError(f"mvnet=late_fusion fuses a point encoder with fixed views (the paper's setup, L556); "
-                             f"selector={cfg.selector.name} {'learns' if learns else 'refines'} its views against C: "
+                             f"selector={cfg.selector.name} {moves} its views against C: "
                              "use a fixed layout (selector=circular, spherical, ...) or mvnet=mvcnn")
         n = self.num_points
         if n is not None:

@@ -213,6 +213,15 @@ class MVNetConfig(OptionConfig):
         return None
 
 
+def views_move_with_c(cfg: "TrainConfig") -> Optional[str]:
+    """``"learns"`` / ``"refines"`` when the run's selector moves its views against C (a learned G,
+    or one optimised per batch), else None: a C that reads the shape's points (late fusion, the
+    point classifier) is called without them there, so it needs fixed views."""
+    if cfg.selector.learned:
+        return "learns"
+    return "refines" if cfg.selector.uses_camera_gradient() else None
+
+
 @register("mvcnn")
 @dataclass
 class MVCNNConfig(MVNetConfig):

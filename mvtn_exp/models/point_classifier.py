@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Optional, Union
 from torch import Tensor, nn
 
 from ..checks import at_least
-from .multiview import MVNetConfig, register
+from .multiview import MVNetConfig, register, views_move_with_c
 from .point_encoders import build_point_encoder
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -73,10 +73,10 @@ class PointClassifierConfig(MVNetConfig):
         return self
 
     def check(self, cfg: "TrainConfig") -> None:
-        learns = cfg.selector.learned
-        if learns or cfg.selector.uses_camera_gradient():
+        moves = views_move_with_c(cfg)
+        if moves:
             raise ValueError(f"mvnet=point_classifier classifies points without views; selector={cfg.selector.name} "
-                             f"{'learns' if learns else 'refines'} views against C: use a fixed layout (selector=circular)")
+                             f"{moves} views against C: use a fixed layout (selector=circular)")
         if cfg.backbone.weights is not None:
             raise ValueError(f"backbone.weights={cfg.backbone.weights}: mvnet=point_classifier has no 2D backbone "
                              "(set backbone.weights=null)")
