@@ -10,7 +10,8 @@ from .data.shapes import PointClouds
 from .models import pretrained
 from .models.precision import autocast
 from .render.renderer import MultiViewRenderer
-from .schema import SHAPES, TrainConfig
+from .config.schema import TrainConfig
+from .data.config import SHAPES
 from .selectors.canonical import CanonicalPose, world_views
 from .selectors.hypotheses import HypothesisRace
 from .selectors.polarity import ViewPolarity
@@ -34,7 +35,7 @@ class MVTN(nn.Module):
         if shape not in SHAPES:
             raise ValueError(f"shape={shape!r}: expected one of {list(SHAPES)}")
         self.selector, self.renderer, self.mvnet, self.shape = selector, renderer, mvnet, shape
-        self.selector_frozen = False  # view transfer: G's weights and statistics fixed (engine/view_transfer.py)
+        self.selector_frozen = False  # view transfer: G's weights and statistics fixed (selectors/view_transfer.py)
         self.precision = "fp32"  # C's autocast (engine/precision.py); G and R always run in float32
 
     def train(self, mode: bool = True) -> "MVTN":

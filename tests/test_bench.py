@@ -12,7 +12,7 @@ import torch
 
 from conftest import random_triangles
 from mvtn_exp.bench.dense import dense_pairs, dense_search, estimate_pairs
-from mvtn_exp.bench.memory import PeakMemory
+from mvtn_exp.runtime.memory import PeakMemory
 from mvtn_exp.bench.render_bench import torus
 from mvtn_exp.render import layouts, mesh_raster
 from mvtn_exp.render.renderer import MultiViewRenderer

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mvtn_exp.engine import checkpoint, seeding
+from mvtn_exp.runtime import checkpoint, seeding
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -75,19 +75,24 @@ def test_weights_only_everywhere():
     assert hits == []
 
 
-def test_checkpoints_of_the_older_format_still_load(tmp_path):
-    """Before weights_only loading the RNG state held numpy's key array: such files still load
-    (plain number arrays are allowed), and their RNG state restores."""
+def test_numpy_rng_arrays_load_and_other_formats_are_refused_in_one_line(tmp_path):
+    """An RNG state holding numpy's key array loads (plain number arrays are allowed) and restores;
+    a file of another checkpoint format is refused naming its format and where to read it."""
     import numpy as np
 
-    old = {"model": {"w": torch.ones(2)}, "config": {"views": 1}, "epoch": 0, "best_epoch": 0,
-           "rng": {**seeding.rng_state(), "numpy": np.random.get_state()}}
-    torch.save(old, tmp_path / "old.pt")
-    state = checkpoint.load(tmp_path / "old.pt")
+    rng = {**seeding.rng_state(), "numpy": np.random.get_state()}
+    torch.save({"model": {"w": torch.ones(2)}, "config": {"views": 1}, "epoch": 1, "format": checkpoint.FORMAT,
+                "rng": rng}, tmp_path / "now.pt")
+    state = checkpoint.load(tmp_path / "now.pt")
     assert isinstance(state["rng"]["numpy"][1], np.ndarray)
-    # they counted epochs from 0: read as today's count (1 epoch done, the best was epoch 1)
-    assert state["epoch"] == 1 and state["best_epoch"] == 1 and state["format"] == checkpoint.FORMAT
     seeding.set_rng_state(state["rng"])
+    for written in (None, 2):  # format 1 files carried no format key
+        old = {"model": {"w": torch.ones(2)}, "config": {"views": 1}, "epoch": 0, **({"format": written} if written else {})}
+        torch.save(old, tmp_path / "old.pt")
+        with pytest.raises(checkpoint.CheckpointMismatch) as err:
+            checkpoint.load(tmp_path / "old.pt")
+        assert f"format {written or 1}" in str(err.value) and "docs/training.md#checkpoint-formats" in str(err.value)
+        assert "\n" not in str(err.value)
     # an object array would smuggle other globals: still refused
     torch.save({"model": {}, "config": {}, "x": np.array([_Payload(tmp_path / "ran")], dtype=object)}, tmp_path / "obj.pt")
     with pytest.raises(checkpoint.CheckpointMismatch, match="refused"):

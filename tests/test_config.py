@@ -9,8 +9,8 @@ import torch
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
-from mvtn_exp.cli.common import check_overrides, sweep_variants
-from mvtn_exp.schema import GROUPS, TrainConfig, register_configs
+from mvtn_exp.config.compose import check_overrides, sweep_variants
+from mvtn_exp.config.schema import GROUPS, TrainConfig, register_configs
 
 CONF = Path(__file__).resolve().parents[1] / "mvtn_exp" / "conf"
 register_configs()
@@ -298,7 +298,7 @@ def test_device_auto_resolves_to_what_the_machine_has(monkeypatch):
     """device=auto is every CLI's default and never fails: CUDA when torch sees it, else CPU."""
     from mvtn_exp.cli.bench import BenchAppConfig
     from mvtn_exp.cli.render import RenderAppConfig
-    from mvtn_exp.schema import EvalConfig, TrainConfig, check_device, resolve_device
+    from mvtn_exp.config.schema import EvalConfig, TrainConfig, check_device, resolve_device
 
     assert TrainConfig().device == EvalConfig().device == BenchAppConfig().device == RenderAppConfig().device == "auto"
     check_device("device", "auto")

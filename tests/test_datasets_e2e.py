@@ -68,8 +68,8 @@ def test_modelnet40_point_formats(tmp_path, fmt):
 def test_shapenet_retrieval_reports_shrec17_metrics(tmp_path):
     from test_shapenet import _tree
 
-    from mvtn_exp.engine.evaluation import evaluate_checkpoint
-    from mvtn_exp.schema import EvalConfig, RetrievalEvalConfig
+    from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
+    from mvtn_exp.config.schema import EvalConfig, RetrievalEvalConfig
 
     root = _tree(tmp_path / "ShapeNetCore.v2")
     _run({"name": "shapenet", "root": str(root), "shape": "points", "num_points": 128,

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from mvtn_exp.engine import distributed
+from mvtn_exp.runtime import distributed
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -4,7 +4,7 @@ and docs/**/*.md is checked, one test per command (test id = file:line).
 How a command is checked, without running it (in-process, so the whole file takes seconds):
 
 - ``mvtn-train ...`` (also inside ``torchrun ... $(which mvtn-train) ...``, and ``-m`` sweeps):
-  the command line goes through ``cli.common.check_overrides``, the check ``mvtn-train`` itself runs
+  the command line goes through ``config.compose.check_overrides``, the check ``mvtn-train`` itself runs
   before anything else (unknown keys and group options, wrong types, every value of every swept key,
   ``+key`` outside the schema, launchers), with ``engine.trainer.as_config`` as its validation, so
   a bad value is caught too, not only a bad key. ``--cfg job`` is dropped and the rest composed;
@@ -33,6 +33,7 @@ import importlib.util
 import os
 import re
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 
@@ -115,7 +116,7 @@ def _check_once(prog: str, argv: list[str], capsys, **kwargs) -> str | None:
     """``check_overrides(prog, argv=argv, ...)`` as the CLI calls it -> None if it passes, else its
     one line. First without its ``_choices`` pass (a second composition that only names the file in
     an error message: half the time); on a failure again with it, for the CLI's exact message."""
-    from mvtn_exp.cli import common
+    from mvtn_exp.config import compose as common
 
     def attempt(fast: bool) -> str | None:
         capsys.readouterr()
@@ -141,7 +142,7 @@ def _run_check(prog: str, argv: list[str], capsys, **kwargs) -> str | None:
     other value on its own), so that variants shared by several commands are composed once.
     ``seed=N`` does not change what composes (a top-level int, checked >= 0), so variants that differ
     only in it share one check."""
-    from mvtn_exp.cli.common import MULTIRUN_FLAGS, sweep_variants
+    from mvtn_exp.config.compose import MULTIRUN_FLAGS, sweep_variants
 
     if not any(a in MULTIRUN_FLAGS for a in argv):
         variants = [argv]
@@ -189,7 +190,7 @@ INFO_FLAGS = ("--resolve",)
 
 
 def check_train(argv: list[str], capsys, prog: str = "mvtn-train", config_name: str = "train") -> str | None:
-    from mvtn_exp.schema import TrainConfig, register_configs
+    from mvtn_exp.config.schema import TrainConfig, register_configs
 
     register_configs()
     if argv[:1] in (["--summary"], ["--resume-sweep"]):
@@ -206,7 +207,7 @@ def check_train(argv: list[str], capsys, prog: str = "mvtn-train", config_name: 
 
 
 def check_eval(argv, capsys):
-    from mvtn_exp.schema import EvalConfig, register_configs
+    from mvtn_exp.config.schema import EvalConfig, register_configs
 
     register_configs()
     return _run_check("mvtn-eval", argv, capsys, config_name="eval", schema=EvalConfig,
@@ -504,29 +505,13 @@ def test_experiment_files_carry_a_short_header_naming_where_the_result_is(path):
     assert len(comments) <= 12 and not any(re.search(r"\bseed \d+\b.*\d\.\d{3}", c) for c in comments), path.name
 
 
-def test_layout_lists_every_module_under_its_package():
-    """docs/layout.md names every module of the package in its package's block (a new module
-    without a line there fails, naming it)."""
+def test_layout_lists_every_module_with_its_role():
+    """docs/layout.md's module list is what scripts/write_layout.py makes of the package's docstrings
+    (a new module, or a changed first sentence, without the page rewritten fails)."""
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "write_layout.py"), "--check"], capture_output=True,
+                         text=True)
+    assert out.returncode == 0, out.stderr
     text = (ROOT / "docs" / "layout.md").read_text()
-    blocks: dict[str, str] = {}
-    current = None
-    for line in text.splitlines():
-        m = re.match(r"(mvtn_exp/(?:[a-z_]+/|[a-z_]+\.py))\s", line + " ")
-        if m:
-            current = m.group(1)
-            blocks[current] = line
-        elif current and line.startswith(" " * 10):
-            blocks[current] += " " + line.strip()
-        else:
-            current = None
-    package = ROOT / "mvtn_exp"
-    missing = []
-    for path in sorted(package.rglob("*.py")):
-        if path.name == "__init__.py":
-            continue
-        rel = path.relative_to(package)
-        key = f"mvtn_exp/{rel.parent.as_posix()}/" if rel.parent.as_posix() != "." else f"mvtn_exp/{rel.name}"
-        block = blocks.get(key, "")
-        if not re.search(rf"\b{re.escape(path.stem)}\b", block):
-            missing.append(rel.as_posix())
-    assert not missing, f"docs/layout.md does not list {missing}"
+    for path in (ROOT / "mvtn_exp").rglob("*.py"):
+        if path.name != "__init__.py":
+            assert f"`{path.name}`" in text or f"`mvtn_exp/{path.name}`" in text, path

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from mvtn_exp.engine import train
-from mvtn_exp.engine.evaluation import evaluate_checkpoint
-from mvtn_exp.schema import EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig
+from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
+from mvtn_exp.config.schema import EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -113,7 +113,7 @@ def test_a_compiled_run_evaluates_eagerly_where_compile_cannot_run(ckpt, tmp_pat
     evaluated eagerly, with a note, on a machine where torch.compile cannot run."""
     import torch
 
-    from mvtn_exp.engine import checkpoint
+    from mvtn_exp.runtime import checkpoint
     from mvtn_exp.render import accel
 
     state = checkpoint.load(str(ckpt))

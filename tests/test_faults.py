@@ -79,7 +79,7 @@ def test_kill_9_at_some_step_then_resume_equals_the_uninterrupted_run(tmp_path, 
 
 SIGTERM_IN_SECOND_WRITE = """
 import os, signal, time
-import mvtn_exp.engine.checkpoint as ck
+import mvtn_exp.runtime.checkpoint as ck
 _replace, _calls = os.replace, [0]
 
 def replace(src, dst):  # SIGTERM while a checkpoint is half way: written to its temp file, not yet in place

@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.engine import train
 from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.selectors import PointOfInterestSelector, build_selector
 from mvtn_exp.selectors.hypotheses import HypothesisRace, join_views, split_images, split_views

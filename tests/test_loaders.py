@@ -9,7 +9,7 @@ from tqdm.auto import tqdm
 
 from conftest import tiny_config
 from mvtn_exp.engine import loaders
-from mvtn_exp.engine.distributed import World
+from mvtn_exp.runtime.distributed import World
 from mvtn_exp.engine.loaders import EpochBatches
 from mvtn_exp.engine.trainer import as_config
 

@@ -9,15 +9,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from mvtn_exp.engine import checkpoint, train
-from mvtn_exp.engine.evaluation import evaluate_checkpoint
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.engine import train
+from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
 from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.model import build_mvtn
 from mvtn_exp.models.backbones import BACKBONES, FEATURE_DIMS, build_backbone
 from mvtn_exp.models.multiview import MULTIVIEW, build_multiview
 from mvtn_exp.models.point_encoders import POINT_ENCODERS, build_point_encoder
 from mvtn_exp.models.view_transformer import ViewTransformer
-from mvtn_exp.schema import EvalConfig
+from mvtn_exp.config.schema import EvalConfig
 from mvtn_exp.selectors import NoisySelector, build_selector
 
 from conftest import tiny_config
@@ -407,7 +408,7 @@ class _Poison:
 
 
 def _selector_settings():
-    from mvtn_exp.options import OPTIONS, load
+    from mvtn_exp.config.options import OPTIONS, load
 
     load()
     extra = {"optimized": {"steps": 2, "step_size": 20.0, "objective": "min_ce"}}

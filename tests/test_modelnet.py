@@ -205,7 +205,7 @@ def test_prepare_cli_builds_the_cache_and_reports_skips(tree, tmp_path):
 def test_retrieval_database_is_the_whole_official_train_split(tree, tmp_path):
     """Retrieval ranks against every official train shape: the val shapes carved out of train for
     model selection go back into the database (ModelNet40: 9,843, not 90% of them)."""
-    from mvtn_exp.engine.eval_modes import retrieval_database
+    from mvtn_exp.evaluation.modes import retrieval_database
     from mvtn_exp.engine.trainer import as_config
 
     cfg = as_config({"dataset": {"name": "modelnet40", "root": str(tree), "cache_dir": str(tmp_path / "cache"),

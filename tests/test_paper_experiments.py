@@ -17,10 +17,9 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from mvtn_exp.engine import train
-from mvtn_exp.engine.evaluation import evaluate_checkpoint
+from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
 from mvtn_exp.engine.trainer import config_dict
-from mvtn_exp.schema import (EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig,
-                             register_configs)
+from mvtn_exp.config.schema import EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig, register_configs
 
 register_configs()
 CONF = Path(__file__).resolve().parents[1] / "mvtn_exp" / "conf" / "experiment"
@@ -162,7 +161,7 @@ def test_paper_experiment_trains_and_evaluates(name, trees, mvcnn_run, tmp_path)
 
 def test_every_paper_experiment_is_in_the_paper_tables():
     """Each paper experiment file is a table of ``mvtn-report`` (docs/paper.md lists them all)."""
-    from mvtn_exp.engine.report import load_tables
+    from mvtn_exp.runs.report import load_tables
 
     named = {t.experiment for t in load_tables()} | {r.experiment for t in load_tables() for r in t.rows}
     assert {n for n in PAPER if n.startswith("paper_")} <= named

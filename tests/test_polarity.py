@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import torch
 
-from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.engine import train
 from mvtn_exp.selectors.polarity import ViewPolarity, antipode
 
 from test_train_e2e import tiny

@@ -1,12 +1,13 @@
-"""BatchNorm re-estimation before validation (engine/precise_bn.py): the plain average, nothing else moves."""
+"""BatchNorm re-estimation before validation (models/precise_bn.py): the plain average, nothing else moves."""
 from __future__ import annotations
 
 import pytest
 import torch
 from torch import nn
 
-from mvtn_exp.engine import checkpoint, train
-from mvtn_exp.engine.precise_bn import recalibrate, restore, running_statistics
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.engine import train
+from mvtn_exp.models.precise_bn import recalibrate, restore, running_statistics
 
 from test_train_e2e import tiny
 

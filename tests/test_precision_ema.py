@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.engine import train
 from mvtn_exp.engine.ema import ModelEMA
 from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.model import build_mvtn

@@ -9,7 +9,7 @@ import pytest
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
-from mvtn_exp.schema import TrainConfig, register_configs
+from mvtn_exp.config.schema import TrainConfig, register_configs
 
 ROOT = Path(__file__).resolve().parents[1]
 register_configs()
@@ -70,7 +70,7 @@ def test_the_repositorys_example_composes_and_a_bad_key_is_one_line(tmp_path):
 def test_a_user_option_file_without_its_schema_is_one_line_naming_the_fix(tmp_path, monkeypatch, capsys):
     """A file in a one-schema-per-option group must say which option it sets; if it does not, the
     error names the defaults line to add (not Hydra's trace), exit 2."""
-    from mvtn_exp.cli.common import check_overrides
+    from mvtn_exp.config.compose import check_overrides
 
     (tmp_path / "mvnet").mkdir()
     (tmp_path / "mvnet" / "mine.yaml").write_text("name: mvcnn\npool: mean\n")
@@ -88,7 +88,7 @@ def test_a_user_option_file_without_its_schema_is_one_line_naming_the_fix(tmp_pa
     ("# @package _global_\nviews: [\n", "mine.yaml:3", "while parsing a flow node"),
 ])
 def test_a_bad_user_file_is_named_with_its_line(tmp_path, monkeypatch, capsys, text, where, needle):
-    from mvtn_exp.cli.common import check_overrides
+    from mvtn_exp.config.compose import check_overrides
 
     (tmp_path / "experiment").mkdir()
     (tmp_path / "experiment" / "mine.yaml").write_text(text)
@@ -101,7 +101,7 @@ def test_a_bad_user_file_is_named_with_its_line(tmp_path, monkeypatch, capsys, t
 
 
 def test_a_user_file_named_like_the_main_config_is_refused(tmp_path, monkeypatch, capsys):
-    from mvtn_exp.cli.common import check_overrides
+    from mvtn_exp.config.compose import check_overrides
 
     (tmp_path / "train.yaml").write_text("views: 3\n")
     monkeypatch.setenv("MVTN_CONFIGS", str(tmp_path))

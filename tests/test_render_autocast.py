@@ -84,7 +84,8 @@ def test_deterministic_settings_turn_torchs_deterministic_algorithms_on_and_back
     """renderer.deterministic: the renderer's forward runs under torch's deterministic algorithms
     (the same images; the flag is restored after); deterministic=true: the whole run, the renderer
     included, and the previous settings come back when the run ends."""
-    from mvtn_exp.engine import seeding, train
+    from mvtn_exp.runtime import seeding
+    from mvtn_exp.engine import train
 
     mesh, _, azim, elev = _scene()
     seen = []

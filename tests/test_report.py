@@ -12,10 +12,10 @@ import pytest
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
-from mvtn_exp.engine.compare import find_runs, flatten
-from mvtn_exp.engine.report import ReportError, load_tables, metric_value, report, row_matches, to_markdown
+from mvtn_exp.runs.compare import find_runs, flatten
+from mvtn_exp.runs.report import ReportError, load_tables, metric_value, report, row_matches, to_markdown
 from mvtn_exp.engine.trainer import config_dict
-from mvtn_exp.schema import register_configs
+from mvtn_exp.config.schema import register_configs
 
 register_configs()
 GCN = {"dataset": {"name": "modelnet40"}, "mvnet": {"name": "viewgcn"}, "selector": {"name": "mvtn_spherical", "from_ckpt": None},
@@ -79,8 +79,8 @@ def test_welch_interval_matches_scipy_on_raw_samples():
     """The two-sample interval from means and stds equals scipy's Welch interval on the samples."""
     from scipy import stats
 
-    from mvtn_exp.engine.compare import mean_sd
-    from mvtn_exp.engine.report import welch
+    from mvtn_exp.runs.compare import mean_sd
+    from mvtn_exp.runs.report import welch
 
     a, b = [90.1, 91.3, 89.7, 92.0, 90.8], [92.5, 93.1, 92.2, 93.8]
     (ma, sa), (mb, sb) = mean_sd(a), mean_sd(b)
@@ -179,7 +179,7 @@ def _grid(name: str, command: str) -> list[list[str]]:
 def test_every_row_is_what_its_experiment_runs():
     """Each row's conditions are met by at least one job of the experiment its table names, as its
     command gives it (a row naming a key or value that the experiment never produces fails)."""
-    from mvtn_exp.schema import TrainConfig
+    from mvtn_exp.config.schema import TrainConfig
 
     tables = load_tables()
     assert {t.experiment for t in tables} >= {"paper_modelnet40_classification", "paper_scanobjectnn_classification",
@@ -207,7 +207,7 @@ def test_docs_paper_md_shows_every_number_of_the_tables():
     and where the paper gives them (editing the tables without the doc, or the doc alone, fails)."""
     from pathlib import Path
 
-    from mvtn_exp.engine.report import paper_markdown
+    from mvtn_exp.runs.report import paper_markdown
 
     doc = (Path(__file__).resolve().parents[1] / "docs" / "paper.md").read_text()
     start, end = "<!-- mvtn-report --paper -->\n", "<!-- end mvtn-report --paper -->"
@@ -221,7 +221,7 @@ def test_docs_paper_md_shows_every_number_of_the_tables():
 def test_each_paper_file_runs_the_setup_its_table_cites():
     """A ``paper_*`` file whose dataset, M, network, backbone, weights or learning rates differ from
     what the paper states for its table (``setup``, with the lines in ``setup_cite``) fails here."""
-    from mvtn_exp.schema import TrainConfig
+    from mvtn_exp.config.schema import TrainConfig
 
     checked = 0
     with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):

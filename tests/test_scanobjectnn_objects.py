@@ -96,7 +96,7 @@ def test_refused_inputs_name_the_file(tmp_path):
 
 
 def test_config_refuses_pb_t50_rs_from_the_object_files_and_reads_old_configs():
-    from mvtn_exp.schema import DatasetConfig
+    from mvtn_exp.config.schema import DatasetConfig
 
     with pytest.raises(ValueError, match="pb_t50_rs exists only in the h5 release"):
         DatasetConfig(name="scanobjectnn", variant="pb_t50_rs", format="object_dataset", shape="points").validate()

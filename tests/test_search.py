@@ -6,7 +6,8 @@ import json
 import pytest
 import torch
 
-from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.engine import train
 from mvtn_exp.model import build_mvtn
 from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.selectors import search

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from mvtn_exp.engine.sweep import STATUS_FILE, aggregate, write_summary
+from mvtn_exp.runs.sweep import STATUS_FILE, aggregate, write_summary
 
 
 def _job(root, name, overrides, metrics=None, status=None):
@@ -34,7 +34,7 @@ def test_summary_groups_seeds_and_counts_failures(tmp_path):
     assert sorted(r["status"] for r in rows) == ["incomplete", "ok", "ok", "ok", "ok", "training diverged"]
     assert list(rows[0])[:4] == ["job", "selector", "seed", "dataset.root"]  # one column per swept key
     assert {(r["selector"], r["seed"]) for r in rows} == {(s, str(i)) for s in ("circular", "mvtn") for i in range(3)}
-    from mvtn_exp.engine.sweep import collect
+    from mvtn_exp.runs.sweep import collect
 
     aggs = {a["setting"]: a for a in aggregate(collect(tmp_path))}
     assert set(aggs) == {"selector=circular", "selector=mvtn"}
@@ -49,7 +49,7 @@ def test_summary_groups_seeds_and_counts_failures(tmp_path):
     for table in ("## Mean", "## Jobs"):  # every row of each table has the header's number of cells
         lines = [ln for ln in md.split(table, 1)[1].split("\n\n", 2)[1].splitlines() if ln.startswith("|")]
         assert len({ln.count("|") for ln in lines}) == 1, lines
-    from mvtn_exp.engine.sweep import failed_jobs
+    from mvtn_exp.runs.sweep import failed_jobs
 
     assert sorted(failed_jobs(tmp_path)) == ["selector=mvtn,seed=1: training diverged: non-finite loss",
                                              "selector=mvtn,seed=2: incomplete"]

@@ -43,7 +43,7 @@ def _steps(net, x, y, weight=1.0, reduce=None):
 def _rank(rank: int, port: int, dims: int, momentum, out: str) -> None:
     import torch.distributed as dist
 
-    from mvtn_exp.engine import distributed
+    from mvtn_exp.runtime import distributed
 
     dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
     net = sync_bn.convert(_net(dims, momentum))

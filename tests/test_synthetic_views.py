@@ -15,7 +15,7 @@ from mvtn_exp.data.collate import collate_shapes
 from mvtn_exp.data.datasets import build_dataset
 from mvtn_exp.data.synthetic import CacheWarning, random_rotation
 from mvtn_exp.data.synthetic_views import CLASSES, SPLITS, SyntheticViews
-from mvtn_exp.schema import register_configs
+from mvtn_exp.config.schema import register_configs
 
 COUNTS = (3, 1, 4)
 NPTS = 128
@@ -288,7 +288,7 @@ def decoys(tmp_path_factory):
 
 
 def test_decoys_hide_the_detail_in_one_of_six_identical_cups(decoys):
-    from mvtn_exp.schema import VIEW_FAMILIES
+    from mvtn_exp.data.config import VIEW_FAMILIES
 
     assert VIEW_FAMILIES == sv.FAMILIES
     faces = set()

@@ -15,8 +15,8 @@ import yaml
 
 from mvtn_exp.cli.train import objective_values
 from mvtn_exp.cli.tradeoff import main as tradeoff_main
-from mvtn_exp.engine.trade_search import CONDITIONAL, conditional_keys
-from mvtn_exp.engine.tradeoff import compare_fronts, hypervolume, write_tradeoff
+from mvtn_exp.plugins.trade_search import CONDITIONAL, conditional_keys
+from mvtn_exp.runs.tradeoff import compare_fronts, hypervolume, write_tradeoff
 
 from test_sweep_summary import _job
 from test_tradeoff import _metrics

@@ -12,7 +12,7 @@ import pytest
 
 from mvtn_exp.cli.tradeoff import main
 from mvtn_exp.engine.cost import RENDERER_NOTE
-from mvtn_exp.engine.tradeoff import COST_FIELDS, write_tradeoff
+from mvtn_exp.runs.tradeoff import COST_FIELDS, write_tradeoff
 
 from test_sweep_summary import _job
 

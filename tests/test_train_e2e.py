@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from mvtn_exp.engine import train
-from mvtn_exp.engine.checkpoint import CheckpointMismatch, save_atomic
+from mvtn_exp.runtime.checkpoint import CheckpointMismatch, save_atomic
 from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.selectors.training import LearnedTraining
 from mvtn_exp.render import layouts

@@ -4,9 +4,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mvtn_exp.engine import checkpoint, train
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.engine import train
 from mvtn_exp.engine.trainer import as_config
-from mvtn_exp.engine.view_gradient import eval_mode, noise_generator, smoothed_view_gradient, surrogate
+from mvtn_exp.selectors.view_gradient import eval_mode, noise_generator, smoothed_view_gradient, surrogate
 
 from test_train_e2e import tiny
 
@@ -146,7 +147,7 @@ def test_a_smoothed_step_moves_g_and_leaves_c_and_the_rngs_as_autograd_does(tmp_
 def test_centered_logit_is_cross_entropy_without_its_label_free_part():
     """centered_logit = CE - (logsumexp z - mean z); summed over every possible label it is 0 for
     any logits (so a C whose output ignores the label gives G no pull), while CE's sum is not."""
-    from mvtn_exp.schema import TaskConfig
+    from mvtn_exp.config.schema import TaskConfig
     from mvtn_exp.tasks.classification import centered_logit_loss, selector_loss_fn
 
     g = torch.Generator().manual_seed(0)
@@ -179,7 +180,7 @@ def test_selector_loss_changes_g_only(tmp_path):
 
 def count_probes(monkeypatch) -> list:
     """Every later call of ``view_gradient.smoothed_view_gradient`` appends to the returned list."""
-    from mvtn_exp.engine import view_gradient
+    from mvtn_exp.selectors import view_gradient
 
     calls = []
     real = view_gradient.smoothed_view_gradient
@@ -398,7 +399,7 @@ def test_smoothed_gradient_is_finite_at_the_poles(tmp_path, elev):
     """The estimate renders views perturbed around the poles (and past them): finite, seeded."""
     from mvtn_exp.data.collate import collate_shapes
     from mvtn_exp.engine.trainer import make_datasets
-    from mvtn_exp.engine.view_gradient import model_render_loss
+    from mvtn_exp.selectors.view_gradient import model_render_loss
     from mvtn_exp.tasks import classification
 
     from test_train_e2e import tiny_model

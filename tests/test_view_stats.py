@@ -2,7 +2,7 @@ import math
 
 import torch
 
-from mvtn_exp.engine.view_stats import view_stats
+from mvtn_exp.render.view_stats import view_stats
 from mvtn_exp.render import layouts
 from mvtn_exp.selectors.fixed import random_directions
 

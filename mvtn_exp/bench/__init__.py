@@ -1,6 +1,6 @@
 """Benchmarks of the renderer: speed and extra peak memory (``mvtn-bench``, see ``mvtn_exp.cli.bench``).
 
-* ``memory.PeakMemory``: extra peak memory of a block (CUDA allocator stats, or sampled RSS on CPU).
+* ``runtime.memory.PeakMemory`` (used here): extra peak memory of a block (CUDA allocator stats, or sampled RSS on CPU).
 * ``dense``: a brute-force dense K=1 face search, the timing reference for ``search_faces``.
 * ``render_bench``: the benchmark grid, Markdown tables and raw JSON; ``modules`` (the paper's
   module table), ``scaling`` (curves), ``edge_error`` (soft edges against the every-face reference).

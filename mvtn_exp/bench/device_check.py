@@ -118,7 +118,7 @@ def stage_paper_scale(dry: bool, bf16: bool) -> dict:
 def stage_train_step(dry: bool) -> dict:
     """One training step of the paper's size per (multi-view net, renderer mode): seconds of G, R,
     C, optimizer (``engine/step_timer.py``) and the step's peak memory, after one warm-up step."""
-    from ..bench.memory import PeakMemory
+    from ..runtime.memory import PeakMemory
     from ..data.collate import collate_shapes
     from ..engine.step_timer import StepTimer
     from ..engine.trainer import as_config, make_datasets

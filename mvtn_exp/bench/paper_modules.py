@@ -19,7 +19,7 @@ import torch
 
 from ..models.multiview import build_multiview
 from ..models.point_encoders import PaperPointNetConfig, PointEncoderConfig, build_point_encoder
-from ..options import OPTIONS
+from ..config.options import OPTIONS
 from ..selectors import build_selector
 from .modules import RegressorAlone
 from .render_bench import Views, md_table, med_ms, render_fns, renderer_for, time_runs, torus, torus_points

@@ -21,7 +21,7 @@ import torch
 from ..data.shapes import Meshes, PointClouds
 from ..render import budget, tiles
 from .kernel_ops import OpCounter
-from .memory import PeakMemory
+from ..runtime.memory import PeakMemory
 
 BATCH, VIEWS, SIZE = 32, 12, 224
 MESH = "torus-20k"  # the benchmark mesh rendered (render_bench.TORUS_SECTIONS)

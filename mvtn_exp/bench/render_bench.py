@@ -45,7 +45,7 @@ from ..render import accel, layouts, lod, mesh_raster
 from ..render.renderer import MultiViewRenderer
 from . import edge_error
 from .dense import dense_pairs, dense_search
-from .memory import PeakMemory, malloc_threshold_note, set_malloc_mode
+from ..runtime.memory import PeakMemory, malloc_threshold_note, set_malloc_mode
 
 TORUS_SECTIONS = {"torus-2k": 32, "torus-20k": 100, "torus-100k": 224}
 POINT_SOURCE = "torus-20k"  # the surface point clouds are sampled from

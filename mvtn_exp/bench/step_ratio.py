@@ -25,9 +25,9 @@ import statistics
 
 import torch
 
-from ..cli.common import compose_train_config
+from ..config.compose import compose_train_config
 from ..data.collate import collate_shapes
-from ..engine.seeding import seed_everything
+from ..runtime.seeding import seed_everything
 from ..engine.step_timer import STAGES, StepTimer
 from ..engine.trainer import make_datasets, make_optimizer, train_one_epoch
 from ..model import build_mvtn

@@ -20,8 +20,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
 from ..bench.render_bench import BenchOptions, run_bench
-from ..schema import resolve_device
-from .common import check_overrides
+from ..config.schema import resolve_device
+from ..config.compose import check_overrides
 
 MALLOC_ENV = "MALLOC_MMAP_THRESHOLD_"
 MALLOC_VALUE = "65536"
@@ -56,8 +56,8 @@ class BenchAppConfig:
     paper_scale: Optional[bool] = None
 
     def validate(self) -> "BenchAppConfig":
-        from ..checks import at_least
-        from ..schema import check_device
+        from ..config.checks import at_least
+        from ..config.schema import check_device
 
         check_device("device", self.device)
         if self.threads is not None:
@@ -84,7 +84,7 @@ def _started_as_bench() -> bool:
 
 
 def _reexec_with_pinned_malloc() -> None:
-    # CPU memory is measured as the process RSS (mvtn_exp/bench/memory.py). glibc's malloc adapts its
+    # CPU memory is measured as the process RSS (mvtn_exp/runtime/memory.py). glibc's malloc adapts its
     # mmap threshold: after a large block (a tensor) is freed, the threshold grows (up to 32 MiB) and
     # later blocks of that size come from the heap, where freed memory is kept and reused without the
     # RSS going down -- so the peak of a later block looks smaller than it is, by however much an

@@ -1,4 +1,4 @@
-"""``mvtn-compare``: two or more configurations over the same seeds, paired (``engine/compare.py``).
+"""``mvtn-compare``: two or more configurations over the same seeds, paired (``runs/compare.py``).
 
 Read finished runs:   ``mvtn-compare DIR [DIR ...] [--where "KEY=VALUE ..."]... [--group KEY]``
 Run, then read:       ``mvtn-compare --run "OVERRIDES" --run "OVERRIDES" --seeds 0-9 [--jobs 2] COMMON ...``
@@ -27,8 +27,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from ..engine.compare import (CompareError, Side, _check_pair, compare, find_runs, flatten, parse_count, to_markdown,
-                              write)
+from ..runs.compare import CompareError, Side, _check_pair, compare, find_runs, flatten, parse_count, to_markdown, write
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -46,8 +45,8 @@ def parse_seeds(text: str) -> list[int]:
 def _settings(overrides: list[str]) -> dict:
     """The composed ``mvtn-train`` config of ``overrides``, flattened, without run-local keys (a bad
     key is refused as mvtn-train refuses it: one line, exit 2)."""
-    from ..engine.run_keys import is_local
-    from .common import compose_train_config
+    from ..runs.settings import is_local
+    from ..config.compose import compose_train_config
 
     cfg = compose_train_config(overrides, prog="mvtn-compare")
     return {k: v for k, v in flatten(dataclasses.asdict(cfg)).items() if not is_local(k)}

@@ -15,10 +15,11 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
 from ..data.shapes import ShapeError
-from ..engine.checkpoint import CheckpointMismatch
-from ..engine.evaluation import evaluate_checkpoint
-from ..schema import EvalConfig, register_configs
-from .common import check_overrides, check_writable, mark_failed
+from ..runtime.checkpoint import CheckpointMismatch
+from ..evaluation.evaluate import evaluate_checkpoint
+from ..config.schema import EvalConfig, register_configs
+from ..config.compose import check_overrides
+from .common import check_writable, mark_failed
 
 register_configs()
 

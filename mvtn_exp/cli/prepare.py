@@ -13,8 +13,8 @@ from omegaconf import OmegaConf
 
 from ..data.datasets import build_dataset
 from ..data.shapes import ShapeError
-from ..schema import TrainConfig, register_configs
-from .common import check_overrides
+from ..config.schema import TrainConfig, register_configs
+from ..config.compose import check_overrides
 
 register_configs()
 

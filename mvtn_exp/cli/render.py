@@ -24,7 +24,7 @@ from ..render import layouts
 from ..render.config import RendererConfig
 from ..render.renderer import MultiViewRenderer
 from ..viz.images import view_grid, write_png
-from .common import check_overrides
+from ..config.compose import check_overrides
 
 log = logging.getLogger("mvtn-render")
 LAYOUTS = ("circular", "spherical", "fibonacci", "explicit")
@@ -50,7 +50,7 @@ class RenderAppConfig:
     renderer: RendererConfig = field(default_factory=RendererConfig)
 
     def validate(self) -> "RenderAppConfig":
-        from ..schema import check_device, resolve_device
+        from ..config.schema import check_device, resolve_device
 
         check_device("device", self.device)
         if self.renderer.compile:
@@ -118,7 +118,7 @@ def view_angles(cfg: RenderAppConfig, device):
 
 
 def render_file(cfg: RenderAppConfig, out_dir: Path) -> list[Path]:
-    from ..schema import resolve_device
+    from ..config.schema import resolve_device
 
     device = torch.device(resolve_device(cfg.device))
     torch.manual_seed(cfg.seed)

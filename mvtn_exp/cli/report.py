@@ -1,4 +1,4 @@
-"""``mvtn-report [DIR ...]``: the paper's tables next to this project's finished runs (``engine/report.py``).
+"""``mvtn-report [DIR ...]``: the paper's tables next to this project's finished runs (``runs/report.py``).
 
 Reads every run and evaluation below the folders (``mvtn-train`` and ``mvtn-eval`` run dirs, sweep
 dirs), fills each row of ``paper_tables.yaml`` from the runs that match it, prints the Markdown
@@ -12,9 +12,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..engine.compare import CompareError, find_runs
+from ..runs.compare import CompareError, find_runs
 from ..engine.provenance import package_version
-from ..engine.report import TABLES_FILE, ReportError, load_tables, paper_markdown, report, to_markdown, write
+from ..runs.report import TABLES_FILE, ReportError, load_tables, paper_markdown, report, to_markdown, write
 
 
 def build_parser() -> argparse.ArgumentParser:

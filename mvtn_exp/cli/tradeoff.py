@@ -1,4 +1,4 @@
-"""``mvtn-tradeoff DIR``: the speed/accuracy trade of a sweep folder (``engine/tradeoff.py``).
+"""``mvtn-tradeoff DIR``: the speed/accuracy trade of a sweep folder (``runs/tradeoff.py``).
 
 Writes ``tradeoff.csv`` (per setting), ``tradeoff_jobs.csv`` (per job), ``tradeoff.md`` and
 ``pareto.png`` into DIR, prints the Markdown and, last, the path of ``tradeoff.md``.
@@ -8,7 +8,7 @@ OTHER's with one reference point (a search against a grid) and writes it to DIR/
 ``--seed N`` reads only the runs of seed N (a grid's seed-0 runs against a search's one run per
 setting), its files named ``tradeoff-seedN.md`` etc.
 ``--retime`` first times every finished job's test pass again, one at a time in this process
-(``engine/retime.py``), and draws the fronts on those times: folders trained on different
+(``runs/retime.py``), and draws the fronts on those times: folders trained on different
 machines, or beside other jobs, become comparable in time; ``--retimed`` reads those times again
 (another ``--seed`` or ``--metric``) without timing anything. A
 folder with no finished job, with jobs from different datasets or with a job whose metrics lack
@@ -22,10 +22,10 @@ import sys
 from pathlib import Path
 
 from ..data.shapes import ShapeError
-from ..engine.checkpoint import CheckpointMismatch
+from ..runtime.checkpoint import CheckpointMismatch
 from ..engine.provenance import package_version
-from ..engine.retime import RetimeError, retime_jobs
-from ..engine.tradeoff import METRICS, TradeoffError, compare_fronts, job_rows, output_name, write_tradeoff
+from ..runs.retime import RetimeError, retime_jobs
+from ..runs.tradeoff import METRICS, TradeoffError, compare_fronts, job_rows, output_name, write_tradeoff
 
 
 def build_parser() -> argparse.ArgumentParser:

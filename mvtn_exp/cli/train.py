@@ -21,14 +21,15 @@ from hydra.types import RunMode
 from omegaconf import OmegaConf
 
 from ..data.shapes import ShapeError
-from ..engine import checkpoint, distributed
+from ..runtime import checkpoint, distributed
 from ..engine import run_dir as run_dir_state
-from ..engine.checkpoint import CheckpointMismatch
+from ..runtime.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
-from ..schema import TrainConfig, register_configs, resolve_device
+from ..config.schema import TrainConfig, register_configs, resolve_device
 from ..models import pretrained
 from ..render import accel
-from .common import check_overrides, check_writable, mark_failed, os_error_text
+from ..config.compose import check_overrides
+from .common import check_writable, mark_failed, os_error_text
 
 register_configs()
 EXIT_CODES = {TrainingDiverged: 3}
@@ -274,7 +275,7 @@ def summary(argv: list[str]) -> int:
     """``mvtn-train --summary DIR``: (re)write a sweep folder's summary, e.g. after jobs ran on a
     cluster and the submitting process was gone when they finished. Exit 0, 1 when a job failed or
     did not finish, 2 for a folder that is not a sweep."""
-    from ..engine.sweep import collect, expected_jobs, failed_jobs, never_started, write_summary
+    from ..runs.sweep import collect, expected_jobs, failed_jobs, never_started, write_summary
 
     if len(argv) != 1:
         print("mvtn-train: error: --summary takes one sweep folder: mvtn-train --summary DIR", file=sys.stderr)
@@ -304,7 +305,7 @@ def shared_run_dir(argv: list[str]) -> list[str]:
     dir: ``hydra.run.dir`` if given, else ``<paths.output_dir>/train/runs/torchrun-<rdzv id>``, the
     same for every restart of the job (``--max-restarts``: ``keep_finished_job`` goes on from its
     ``last.pt``). The other ranks write no Hydra record and log to the console only
-    (``engine/distributed.py``: rank 0 alone writes the run). A sweep (``-m``) is refused."""
+    (``runtime/distributed.py``: rank 0 alone writes the run). A sweep (``-m``) is refused."""
     world = distributed.from_env()
     if not world.enabled:
         return argv

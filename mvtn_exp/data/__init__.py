@@ -1,0 +1,1 @@
+"""Shapes and datasets: containers, readers, caches, the embedded synthetic datasets and collation."""

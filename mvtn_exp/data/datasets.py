@@ -10,7 +10,7 @@ from pathlib import Path
 
 from torch.utils.data import Dataset
 
-from ..schema import DatasetConfig
+from .config import DatasetConfig
 from .mesh_io import DatasetNotFound
 from .modelnet import LAYOUT as MODELNET_LAYOUT
 from .modelnet import ModelNetMeshes

@@ -1,4 +1,4 @@
-"""Training engine: the one loop (``trainer``), checkpoints (``checkpoint``) and seeding (``seeding``)."""
+"""The one training loop and a run's state: counters, checkpoint payload, run folder, logging, cost records."""
 from .trainer import TrainConfig, TrainingDiverged, train
 
 __all__ = ["TrainConfig", "TrainingDiverged", "train"]

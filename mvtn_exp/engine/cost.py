@@ -7,7 +7,7 @@
 - ``infer_ms_per_shape``: the test pass (G, R, C at the configured batch size, data loading
   included) in milliseconds per test shape;
 - ``train_peak_mib`` / ``infer_peak_mib``: the process's peak memory during the epochs (training
-  and validation) and during the test pass: resident set size on CPU (``bench.memory.PeakMemory``:
+  and validation) and during the test pass: resident set size on CPU (``runtime.memory.PeakMemory``:
   sampled, and exact where the kernel lets the high-water mark be reset), ``max_memory_allocated``
   on CUDA (tensors only); ``memory_method`` says which;
 - ``params_selector`` / ``params_mvnet``: trainable parameters of G and C;
@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from ..bench.memory import PeakMemory
+from ..runtime.memory import PeakMemory
 
 RENDERER_NOTE = ("FLOPs do not describe the renderer (face search, sorting and scattering per pixel): "
                  "its cost is render_ms_per_shape and render_pixels_per_shape")

@@ -16,8 +16,8 @@ import torch
 from torch.utils.data import DataLoader, Sampler
 
 from ..data.collate import collate_shapes
-from ..schema import TrainConfig, resolve_device
-from . import distributed
+from ..config.schema import TrainConfig, resolve_device
+from ..runtime import distributed
 
 # attribute under which a dataset keeps its persistent loaders (they live and die with it)
 _SHARDS = "_mvtn_shards"  # rank shares of a dataset (shard_of)

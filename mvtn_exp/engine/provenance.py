@@ -1,6 +1,8 @@
 """Where a result came from: package and library versions, the code's git commit, device, host, command."""
 from __future__ import annotations
 
+from ..config.compose import package_version
+
 import platform
 import socket
 import subprocess
@@ -11,16 +13,6 @@ from pathlib import Path
 import torch
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
-
-
-def package_version() -> str:
-    """The installed ``mvtn-exp`` version (``unknown`` when the package is not installed)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("mvtn-exp")
-    except PackageNotFoundError:
-        return "unknown"
 
 
 def _git(*args: str) -> str | None:

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..schema import LoggerConfig
+from ..config.schema import LoggerConfig
 from ..viz.images import view_grid
 
 

@@ -13,32 +13,31 @@ import logging
 import math
 import shutil
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from ..data.datasets import build_dataset, view_figures
 from ..data.datasets import view_report as dataset_view_report
 from ..model import MVTN, build_mvtn
-from ..models import pretrained, sync_bn
+from ..models import sync_bn
 from ..models.precision import grad_scaler
-from ..schema import TrainConfig, resolve_device, typed_train_config
+from ..config.schema import TrainConfig, as_config, config_dict, resolve_device  # noqa: F401 (as_config: the engine's API)
 from ..tasks import classification
 from ..tasks.robustness import random_rotations, turn_batch
 from ..viz.plots import confusion_png
-from . import checkpoint, cost, distributed, loaders, precise_bn, seeding
+from ..runtime import checkpoint, distributed, seeding
+from . import cost, loaders
+from ..models import precise_bn
 from . import run_dir as run_dir_state
 from .loaders import eval_loader, train_loader
 from .ema import ModelEMA
-from .view_stats import view_stats
+from ..render.view_stats import view_stats
 from .provenance import provenance
 from .run_logger import RunLogger
 from .step_timer import StepTimer
-from . import view_transfer
 
 log = logging.getLogger("mvtn-train")
 SPLITS = ("train", "val", "test")
@@ -46,29 +45,6 @@ SPLITS = ("train", "val", "test")
 
 class TrainingDiverged(RuntimeError):
     """The loss became non-finite; the run stops (the last written checkpoints stay intact)."""
-
-
-def as_config(cfg) -> TrainConfig:
-    """TrainConfig | DictConfig | dict -> a validated TrainConfig (type-checked against the schema,
-    interpolations resolved)."""
-    obj: TrainConfig = OmegaConf.to_object(typed_train_config(cfg))
-    return obj.validate()
-
-
-PATH_KEYS = (("dataset", "root"), ("dataset", "cache_dir"), ("dataset", "split_csv"), ("dataset", "synset_dict"),
-             ("backbone", "weights"), ("paths", "data_dir"), ("paths", "output_dir"), ("paths", "cache_dir"))
-
-
-def config_dict(cfg: TrainConfig) -> dict:
-    """``cfg`` as plain data, with its file and folder paths made absolute (``PATH_KEYS``): what a
-    checkpoint and metrics.json record works from any working directory (``backbone.weights=imagenet``
-    names published weights, not a file: kept as it is)."""
-    out = asdict(cfg)
-    for group, key in PATH_KEYS:
-        value = out.get(group, {}).get(key)
-        if isinstance(value, str) and value and not pretrained.is_source(value):
-            out[group][key] = str(Path(value).expanduser().resolve())
-    return out
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -523,13 +499,13 @@ def train(cfg, run_dir, build_model=None) -> dict:
 
 
 def _train(cfg: TrainConfig, run_dir: Path, build_model) -> dict:
-    world = distributed.from_env()  # torchrun: several processes, one run (engine/distributed.py)
+    world = distributed.from_env()  # torchrun: several processes, one run (runtime/distributed.py)
     device, origin = prepare_run(cfg, run_dir, world)
     cfg_dict = config_dict(cfg)
     resume = None
     if cfg.ckpt_path:
         resume = checkpoint.load(cfg.ckpt_path)
-        checkpoint.check_compatible(resume["config"], cfg_dict)
+        checkpoint.check_compatible(resume["config"], cfg_dict, free=cfg.selector.free_keys())
     else:
         announce(cfg, device)  # (a resumed run's, once its checkpoint is accepted whole)
 
@@ -541,12 +517,8 @@ def _train(cfg: TrainConfig, run_dir: Path, build_model) -> dict:
     model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
     if world.enabled and cfg.sync_bn:  # BatchNorm over the global batch (models/sync_bn.py)
         sync_bn.convert(model)
-    if cfg.selector.learned and cfg.selector.from_ckpt:  # view transfer: G from another run, frozen
-        if resume is None:  # (a resumed run has it in its own state)
-            view_transfer.load_frozen_selector(model, cfg_dict, cfg.selector.from_ckpt)
-        else:
-            view_transfer.freeze_selector(model)
     g_training = cfg.selector.training()(cfg)  # how G trains (selectors/training.py)
+    g_training.start(model, cfg_dict, resumed=resume is not None)
     opt, sched = make_optimizer(cfg, model, g_training)
     scaler = grad_scaler(cfg.precision, device)
     ema = ModelEMA(model, cfg.optim.ema_decay) if cfg.optim.ema_decay is not None else None

@@ -20,8 +20,8 @@ from typing import Callable, Optional, Union
 import torch
 from torch import Tensor, nn
 
-from ..checks import one_of
-from ..options import OPTIONS, OptionConfig
+from ..config.checks import one_of
+from ..config.options import OPTIONS, OptionConfig
 from . import pretrained
 
 PathLike = Union[str, "os.PathLike[str]"]

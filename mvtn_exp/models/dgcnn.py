@@ -23,7 +23,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
-from ..checks import at_least, fraction
+from ..config.checks import at_least, fraction
 from .point_encoders import PointEncoderConfig, register
 
 EDGE_WIDTHS = (64, 64, 128, 256)

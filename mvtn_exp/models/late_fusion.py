@@ -22,13 +22,13 @@ from typing import TYPE_CHECKING, Optional, Union
 import torch
 from torch import Tensor, nn
 
-from ..checks import at_least, one_of
+from ..config.checks import at_least, one_of
 from .backbones import PathLike
 from .multiview import POOLS, MVCNN, MVCNNConfig, register, views_move_with_c
 from .point_encoders import build_point_encoder
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..schema import TrainConfig
+    from ..config.schema import TrainConfig
 
 
 class PointLateFusion(MVCNN):

@@ -15,12 +15,12 @@ from typing import TYPE_CHECKING, Callable, Optional, Union
 import torch
 from torch import Tensor, nn
 
-from ..checks import fraction, one_of
-from ..options import OPTIONS, OptionConfig
+from ..config.checks import fraction, one_of
+from ..config.options import OPTIONS, OptionConfig
 from .backbones import IMAGENET_MEAN, IMAGENET_STD, PathLike, build_backbone, load_weights
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..schema import TrainConfig
+    from ..config.schema import TrainConfig
 
 POOLS = ("max", "mean")
 

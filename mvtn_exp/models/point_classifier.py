@@ -15,12 +15,12 @@ from typing import TYPE_CHECKING, Optional, Union
 
 from torch import Tensor, nn
 
-from ..checks import at_least
+from ..config.checks import at_least
 from .multiview import MVNetConfig, register, views_move_with_c
 from .point_encoders import build_point_encoder
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..schema import TrainConfig
+    from ..config.schema import TrainConfig
 
 
 class PointClassifier(nn.Module):

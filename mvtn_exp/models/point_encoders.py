@@ -20,8 +20,8 @@ from torch import Tensor, nn
 
 from mvtn_exp.data.shapes import Meshes, PointClouds
 
-from ..checks import at_least
-from ..options import OPTIONS, OptionConfig
+from ..config.checks import at_least
+from ..config.options import OPTIONS, OptionConfig
 
 from .pooled_layer import pooled_layer
 

@@ -13,7 +13,17 @@ from contextlib import nullcontext
 
 import torch
 
-from ..schema import PRECISIONS, check_precision  # noqa: F401 (the settings and their check live with the schema)
+from ..config.checks import one_of
+
+PRECISIONS = ("fp32", "bf16", "fp16")
+
+
+def check_precision(precision: str, device: str) -> None:
+    """One-line errors naming the keys, for a precision the device cannot run (``models/precision.py``)."""
+    one_of("precision", precision, PRECISIONS)
+    if precision == "fp16" and not str(device).startswith("cuda"):
+        raise ValueError(f"precision=fp16 with device={device}: float16 autocast needs CUDA; on CPU use "
+                         "precision=bf16 or fp32")
 
 DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 

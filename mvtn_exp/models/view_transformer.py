@@ -20,12 +20,12 @@ from typing import TYPE_CHECKING, Optional, Union
 
 from torch import Tensor, nn
 
-from ..checks import at_least
+from ..config.checks import at_least
 from .backbones import PathLike
 from .multiview import MVCNN, MVCNNConfig, register
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..schema import TrainConfig
+    from ..config.schema import TrainConfig
 
 
 class ViewBlock(nn.Module):

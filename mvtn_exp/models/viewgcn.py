@@ -47,12 +47,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..checks import at_least, one_of
+from ..config.checks import at_least, one_of
 from .backbones import PathLike
 from .multiview import MVCNN, MVNetConfig, register
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..schema import TrainConfig
+    from ..config.schema import TrainConfig
 
 _START = torch.tensor([0.5772, 0.7071, 0.4082])  # a generic direction: farthest-point sampling starts from it
 

@@ -24,7 +24,7 @@ from torch import Tensor, nn
 from .backbones import BackboneConfig, register
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..schema import TrainConfig
+    from ..config.schema import TrainConfig
 
 PATCH = 16
 REF_GRID = 14  # 224 / 16: the grid the position embedding is stored for

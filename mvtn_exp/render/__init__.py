@@ -1,0 +1,1 @@
+"""The differentiable renderer R: cameras, view layouts, rasterisation of meshes and points, shading."""

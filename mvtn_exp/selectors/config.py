@@ -17,17 +17,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar, Optional
 
-from ..checks import at_least, fraction, one_of
-from ..options import OPTIONS, OptionConfig, load
+from ..config.checks import at_least, fraction, one_of
+from ..config.options import OPTIONS, OptionConfig, load
 from ..render.layouts import SPHERES
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..schema import TrainConfig
+    from ..config.schema import TrainConfig
 
 REGISTRY = OPTIONS["selector"]  # every selector option, by name (filled by the selector modules)
 register = REGISTRY.register
 schema = REGISTRY.schema
-BN_SCOPES = ("all", "eval")  # what re-estimated BatchNorm statistics serve (engine/precise_bn.py)
+BN_SCOPES = ("all", "eval")  # what re-estimated BatchNorm statistics serve (models/precise_bn.py)
 
 
 @dataclass
@@ -38,7 +38,7 @@ class SelectorConfig(OptionConfig):
     frame before G and R see it, ``selectors/canonical.py``: the pose-canonicalised baseline).
     ``bn_recalibrate``: before each validation C's BatchNorm statistics are re-estimated over this
     many training batches on the selector's current views (0: the paper's running averages;
-    ``engine/precise_bn.py``), fixed views as learned ones; ``bn_recalibrate_scope``: ``eval``
+    ``models/precise_bn.py``), fixed views as learned ones; ``bn_recalibrate_scope``: ``eval``
     (they serve validation, checkpoints and test; training keeps its own) or ``all``."""
 
     distance: float = 2.2
@@ -51,6 +51,11 @@ class SelectorConfig(OptionConfig):
     learned: ClassVar[bool] = False
     # keys that set how the run trains, not what the model is: they may change when a run is resumed
     training_keys: ClassVar[tuple] = ("bn_recalibrate", "bn_recalibrate_scope")
+
+    @classmethod
+    def free_keys(cls) -> list[str]:
+        """The dotted ``training_keys`` (``selector.lr``, ...): they may differ on resume and view transfer."""
+        return [f"selector.{k}" for k in cls.training_keys]
 
     def validate(self) -> "SelectorConfig":
         super().validate()
@@ -85,7 +90,7 @@ class SelectorConfig(OptionConfig):
         return False
 
 
-GRADIENTS = ("autograd", "smoothed", "search")  # how G gets its gradient (engine/view_gradient.py)
+GRADIENTS = ("autograd", "smoothed", "search")  # how G gets its gradient (selectors/view_gradient.py)
 LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
 WARMUP_VIEWS = ("u0", "random", "spherical", "canonical")
 
@@ -237,42 +242,3 @@ class LearnedSelectorConfig(SelectorConfig):
     def lr_scale(self, epoch: int) -> float:
         """G's learning-rate multiplier on top of the schedule during 0-based ``epoch``."""
         return 0.0 if self.stop_epoch is not None and epoch >= self.stop_epoch else 1.0
-
-
-# Keys that moved, old dotted key -> where it is now (the CLI names the new place, exit 2).
-MOVED = {
-    "optim.lr_selector": "selector.lr", "optim.clip_selector": "selector.clip",
-    "optim.selector_beta1": "selector.beta1", "optim.selector_epochs": "selector.stop_epoch",
-    "optim.selector_warmup_epochs": "selector.warmup_epochs", "optim.warmup_views": "selector.warmup_views",
-    "optim.warmup_num_views": "selector.warmup_num_views", "optim.selector_grad": "selector.grad",
-    "optim.smoothed_pairs": "selector.probe_pairs", "optim.smoothed_sigma": "selector.probe_sigma",
-    "optim.smoothed_every": "selector.probe_every", "optim.selector_loss": "selector.loss",
-    "optim.flip_explore": "selector.flip_explore", "optim.flip_epochs": "selector.flip_epochs",
-    "optim.bn_recalibrate": "selector.bn_recalibrate", "optim.bn_recalibrate_scope": "selector.bn_recalibrate_scope",
-    "optim.hypothesis_epochs": "selector.race_epochs", "optim.hypothesis_z": "selector.race_z",
-    "optim.hypothesis_mode": "selector.race_mode", "selector.poi_gain": "selector.gain",
-    "selector.poi_cache": "selector.cache", "selector.poi_learn_gain": "selector.learn_gain",
-    "selector.opt_steps": "selector.steps", "selector.opt_lr": "selector.step_size",
-    "selector.opt_objective": "selector.objective",
-}
-
-
-REGISTRY.moved.update(MOVED)
-
-
-def upgrade(config: dict) -> dict:
-    """A config dict written before one schema per option (checkpoint format < 3) in today's form:
-    moved keys (``MOVED``) at their new place, keys of other options (then ignored) dropped."""
-    out = {k: dict(v) if isinstance(v, dict) else v for k, v in config.items()}
-    sel = out.setdefault("selector", {})
-    for old, new in MOVED.items():
-        group, key = old.split(".")
-        if isinstance(out.get(group), dict) and key in out[group]:
-            sel[new.split(".")[1]] = out[group].pop(key)
-    load()
-    for kind in OPTIONS:  # each option keeps its own keys
-        node = out.get(kind)
-        name = node.get("name", "mvtn_spherical" if kind == "selector" else None) if isinstance(node, dict) else None
-        if name in OPTIONS[kind]:
-            out[kind] = {k: v for k, v in node.items() if k in OPTIONS[kind].keys_of(name)}
-    return out

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from mvtn_exp.checks import at_least, one_of
+from mvtn_exp.config.checks import at_least, one_of
 from mvtn_exp.render import layouts
 from mvtn_exp.selectors.config import SelectorConfig, register
 

@@ -56,14 +56,14 @@ from typing import TYPE_CHECKING, Optional, Union
 import torch
 from torch import Tensor, nn
 
-from mvtn_exp.checks import at_least, one_of
+from mvtn_exp.config.checks import at_least, one_of
 from mvtn_exp.models.point_encoders import build_point_encoder
 from mvtn_exp.render import layouts
 from mvtn_exp.selectors.config import LearnedSelectorConfig, register
 from mvtn_exp.selectors.fixed import ViewSelector, Views
 
 if TYPE_CHECKING:  # pragma: no cover
-    from mvtn_exp.schema import TrainConfig
+    from mvtn_exp.config.schema import TrainConfig
 
 VARIANTS = ("direct", "direct_offset", "circular", "spherical")
 REGRESSORS = ("compact", "official")

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mvtn_exp.checks import at_least, one_of
+from mvtn_exp.config.checks import at_least, one_of
 from mvtn_exp.selectors.config import register
 from mvtn_exp.selectors.fixed import BASE_LAYOUTS, LayoutConfig, ViewSelector, Views, base_layout
 

@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Optional, Sequence
 import torch
 from torch import Tensor, nn
 
-from mvtn_exp.checks import at_least, one_of
+from mvtn_exp.config.checks import at_least, one_of
 from mvtn_exp.render import layouts
 from mvtn_exp.selectors.config import LearnedSelectorConfig, register
 from mvtn_exp.selectors.fixed import ViewSelector, Views
@@ -55,7 +55,7 @@ from mvtn_exp.selectors.invariant_cache import InvariantCache
 from mvtn_exp.selectors.polarity import antipode
 
 if TYPE_CHECKING:  # pragma: no cover
-    from mvtn_exp.schema import TrainConfig
+    from mvtn_exp.config.schema import TrainConfig
 
 
 def invariant_descriptors(points: Tensor, ks: Sequence[int] = (16, 48)) -> Tensor:

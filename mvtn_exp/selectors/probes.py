@@ -5,7 +5,7 @@ selector with ``grad=smoothed``, ``flip_explore > 0`` or ``hypotheses > 1``:
 
 - ``grad=smoothed``: R is not differentiated; every ``probe_every`` steps G's gradient is the
   task loss smoothed over the views, estimated from ``probe_pairs`` antithetic pairs of renders
-  (``engine/view_gradient.py``) of G's own ``loss`` (``task`` or ``centered_logit``); with
+  (``selectors/view_gradient.py``) of G's own ``loss`` (``task`` or ``centered_logit``); with
   ``probe_batched`` every probe of a step rendered in one call (not while racing);
 - ``train_jitter``: C trains on G's views moved by Gaussian noise (degrees; the probes stay at
   G's views), so that C does not adapt to G's exact view;
@@ -23,7 +23,7 @@ from typing import Optional
 
 import torch
 
-from ..engine import view_gradient
+from . import view_gradient
 from ..tasks import classification
 from .hypotheses import join_views, split_images, split_views
 from .training import LearnedTraining, Step

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..engine import view_gradient
+from . import view_gradient
 from ..render import layouts
 from ..render.cameras import direction_angles as to_angles
 from ..render.cameras import view_directions as unit_directions

@@ -2,6 +2,8 @@
 
 A selector config's ``training()`` names the class; the trainer builds it once per run and calls
 
+- ``start(model, cfg_dict, resumed)`` once, after the model is built (view transfer loads and
+  freezes G here);
 - ``param_group(params)`` / ``clip``: G's AdamW group (only if G has parameters; its schedule
   multiplier is the selector config's ``lr_scale``);
 - ``start_epoch(model, epoch, g_lr, hold_views)`` before an epoch's first step (``hold_views``:
@@ -26,6 +28,7 @@ from torch import Tensor
 
 from ..render import layouts
 from .canonical import pca_frames, world_views
+from . import view_transfer
 from .fixed import random_directions
 
 
@@ -50,6 +53,10 @@ class SelectorTraining:
 
     def __init__(self, cfg) -> None:
         self.cfg, self.s = cfg, cfg.selector
+
+    def start(self, model, cfg_dict: dict, resumed: bool) -> None:
+        """Called once after the model is built, before the optimizer; ``resumed``: the weights come
+        from the run's own checkpoint next."""
 
     def param_group(self, params: list) -> dict:
         raise ValueError(f"selector={self.s.name}: a fixed selector has no parameters to train")
@@ -83,7 +90,7 @@ class SelectorTraining:
         """``bn_recalibrate > 0``: re-estimate C's BatchNorm statistics on the selector's current
         views (fixed, or G's); with scope ``eval`` return training's own statistics
         (``after_validation`` puts them back)."""
-        from ..engine import precise_bn
+        from ..models import precise_bn
 
         if not self.s.bn_recalibrate:
             return None
@@ -92,7 +99,7 @@ class SelectorTraining:
         return state
 
     def after_validation(self, model, state: Optional[dict]) -> None:
-        from ..engine import precise_bn
+        from ..models import precise_bn
 
         if state is not None:
             precise_bn.restore(model, state)
@@ -112,6 +119,13 @@ class LearnedTraining(SelectorTraining):
         super().__init__(cfg)
         self.clip = self.s.clip
         self.warm = self.frozen = False
+
+    def start(self, model, cfg_dict: dict, resumed: bool) -> None:
+        """``selector.from_ckpt``: G from another run, frozen (a resumed run has it in its own state)."""
+        if self.s.from_ckpt and not resumed:
+            view_transfer.load_frozen_selector(model, cfg_dict, self.s.from_ckpt)
+        elif self.s.from_ckpt:
+            view_transfer.freeze_selector(model)
 
     def param_group(self, params: list) -> dict:
         return {"params": params, "lr": self.s.lr, "name": "selector", "betas": (self.s.beta1, 0.999)}

@@ -1,1 +1,1 @@
-"""Task heads and their metrics (classification now; retrieval and robustness later)."""
+"""Task heads and their metrics: classification, retrieval, robustness."""

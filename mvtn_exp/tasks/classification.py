@@ -5,7 +5,7 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from ..schema import TaskConfig
+from .config import TaskConfig
 
 
 def loss_fn(cfg: TaskConfig, reduction: str = "mean"):

@@ -1,0 +1,1 @@
+"""Figures: view grids, camera plots, view histograms and curves."""

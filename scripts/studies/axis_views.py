@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 from mvtn_exp.model import MVTN, build_mvtn
-from mvtn_exp.schema import TrainConfig
+from mvtn_exp.config.schema import TrainConfig
 
 RING_DEG = 30.0
 
@@ -89,7 +89,7 @@ def build_axis_model(cfg: TrainConfig, num_classes: int, tilt: float = 0.0) -> A
 
 
 def main(argv=None) -> None:
-    from mvtn_exp.cli.common import compose_train_config
+    from mvtn_exp.config.compose import compose_train_config
     from mvtn_exp.engine.trainer import train
 
     p = argparse.ArgumentParser(prog="python scripts/studies/axis_views.py", description=__doc__.splitlines()[0])

@@ -48,7 +48,7 @@ def seen_share(selector, ds, batch_size: int, points: int | None) -> float:
 
 def run(overrides: list[str], epochs: int, lr: float, progress: bool = True) -> dict:
     """Train the config's G alone, supervised (module docstring) -> ``{"val": [...], "test": share}``."""
-    from mvtn_exp.cli.common import compose_train_config
+    from mvtn_exp.config.compose import compose_train_config
     from mvtn_exp.data.collate import collate_shapes
     from mvtn_exp.engine.trainer import make_datasets
     from mvtn_exp.tasks.robustness import random_rotations, turn_batch

@@ -23,7 +23,7 @@ def measure(trim_mib: int, cases=CASES, repeats: int = 5, size: int = 224, views
     """In this process: set the heap thresholds, then time each case against ResNet-18 in alternation."""
     import torch
 
-    from mvtn_exp.bench import memory
+    from mvtn_exp.runtime import memory
     from mvtn_exp.bench.render_bench import (Bench, BenchOptions, Views, paired_ratio, paired_times, render_fns,
                                              renderer_for, torus_of, torus_points)
 

@@ -15,8 +15,8 @@ from dataclasses import replace
 import torch
 
 from mvtn_exp.data.datasets import build_dataset
-from mvtn_exp.engine import checkpoint
-from mvtn_exp.engine.evaluation import config_from_checkpoint, load_model
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.evaluation.evaluate import config_from_checkpoint, load_model
 from mvtn_exp.engine.trainer import eval_loader
 from mvtn_exp.render import lod
 from mvtn_exp.tasks import classification

@@ -7,7 +7,7 @@ how well a descent step on G's views would turn the camera towards the axis, for
 
 - ``autograd``: the renderer's camera gradient dL/du (what ``selector.grad=autograd`` uses),
 - ``smoothed``: the antithetic estimate of the smoothed loss's gradient from loss values at
-  perturbed views (``selector.grad=smoothed``, ``engine/view_gradient.py``),
+  perturbed views (``selector.grad=smoothed``, ``selectors/view_gradient.py``),
 
 as the mean cosine between the camera's move and the direction to the axis, and the share of
 shapes moved towards it (0.5: no information). The moves are what a step in (azimuth, elevation)
@@ -26,7 +26,8 @@ import torch
 
 from mvtn_exp.data.collate import collate_shapes
 from mvtn_exp.data.synthetic_views import view_angles
-from mvtn_exp.engine import checkpoint, view_gradient
+from mvtn_exp.runtime import checkpoint
+from mvtn_exp.selectors import view_gradient
 from mvtn_exp.engine.trainer import as_config, make_datasets
 from mvtn_exp.model import build_mvtn
 from mvtn_exp.tasks import classification

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from ..options import OPTIONS
+from ..config.options import OPTIONS
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 

@@ -15,10 +15,10 @@ from tqdm.auto import tqdm
 
 from ..data.datasets import build_dataset
 from ..data.datasets import retrieval_report as dataset_retrieval_report
-from ..schema import EvalConfig, TrainConfig
+from ..config.schema import EvalConfig, TrainConfig
 from ..tasks import classification, retrieval, robustness
 from ..viz.plots import occlusion_png
-from .trainer import eval_loader
+from ..engine.trainer import eval_loader
 
 
 def _std(values: list[float]) -> float:

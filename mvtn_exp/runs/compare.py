@@ -40,10 +40,10 @@ from pathlib import Path
 import yaml
 from scipy import stats
 
-from .provenance import machine
+from ..engine.provenance import machine
 from .sweep import STATUS_FILE
 
-from .run_keys import RUN_LOCAL, is_local  # noqa: F401 (RUN_LOCAL re-exported)
+from .settings import RUN_LOCAL, is_local  # noqa: F401 (RUN_LOCAL re-exported)
 PROTECTED = ("dataset", "epochs", "patience")  # data, its splits and the training length
 
 
@@ -128,8 +128,8 @@ def current_defaults(settings: dict) -> dict:
     that schema's keys, not those of the kind's default option, which a fixed selector lacks)."""
     from omegaconf import OmegaConf
 
-    from ..options import OPTIONS
-    from ..schema import OPTION_KINDS, TrainConfig
+    from ..config.options import OPTIONS
+    from ..config.schema import OPTION_KINDS, TrainConfig
 
     names = tuple(settings.get(f"{kind}.name") for kind in OPTION_KINDS)
     if names not in _DEFAULTS:

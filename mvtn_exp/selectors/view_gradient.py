@@ -33,8 +33,8 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
-from ..selectors.hypotheses import join_views, split_images
-from . import distributed, seeding
+from .hypotheses import join_views, split_images
+from ..runtime import distributed, seeding
 
 
 @contextmanager

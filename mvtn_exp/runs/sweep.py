@@ -11,8 +11,8 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-from .run_dir import STATUS_FILE  # status.json: a run's last outcome
-from .run_keys import is_local
+from ..engine.run_dir import STATUS_FILE  # status.json: a run's last outcome
+from .settings import is_local
 
 COLUMNS = ("test_acc", "test_mean_class_acc", "best_val_acc", "mean_epoch_seconds", "test_view_offset_azim",
            "test_view_offset_elev", "test_view_spread", "test_view_separation")

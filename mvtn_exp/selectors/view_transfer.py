@@ -10,7 +10,8 @@ resumed run takes G from its own checkpoint and does not read ``from_ckpt`` agai
 """
 from __future__ import annotations
 
-from . import checkpoint
+from ..runtime import checkpoint
+from .config import REGISTRY
 
 KEYS = ("views", "selector", "point_encoder")
 
@@ -25,7 +26,8 @@ def load_frozen_selector(model, cfg_dict: dict, path) -> None:
     """Copy G's weights from the checkpoint at ``path`` into ``model.selector`` (see the module docstring)."""
     state = checkpoint.load(path)
     try:
-        checkpoint.check_compatible(_without_source(state["config"]), _without_source(cfg_dict), keys=KEYS)
+        checkpoint.check_compatible(_without_source(state["config"]), _without_source(cfg_dict), keys=KEYS,
+                                    free=REGISTRY[cfg_dict["selector"]["name"]].free_keys())
     except checkpoint.CheckpointMismatch as exc:
         raise checkpoint.CheckpointMismatch(f"selector.from_ckpt={path}: its G differs from the configured one: "
                                             f"{str(exc).split(': ', 1)[1]}") from None

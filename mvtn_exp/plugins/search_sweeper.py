@@ -44,8 +44,8 @@ class SearchSweeperConf(OptunaSweeperConf):
     max_repeats: int = 50
 
 
-def register(cs: ConfigStore) -> None:
-    cs.store(group="hydra/sweeper", name="mvtn_optuna", node=SearchSweeperConf, provider="mvtn_exp")
+# hydra/sweeper=mvtn_optuna: stored when Hydra's plugin scan imports hydra_plugins/mvtn_exp_search_sweeper
+ConfigStore.instance().store(group="hydra/sweeper", name="mvtn_optuna", node=SearchSweeperConf, provider="mvtn_exp")
 
 
 class SearchRefused(RuntimeError):

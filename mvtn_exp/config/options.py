@@ -31,11 +31,11 @@ PACKAGES = {"selector": ("mvtn_exp.selectors",), "point_encoder": ("mvtn_exp.mod
 
 
 class Options(dict):
-    """``name -> config class`` of one kind; ``moved``: old dotted key -> its new place (messages)."""
+    """``name -> config class`` of one kind."""
 
-    def __init__(self, kind: str, moved: Optional[dict] = None) -> None:
+    def __init__(self, kind: str) -> None:
         super().__init__()
-        self.kind, self.moved = kind, moved if moved is not None else {}
+        self.kind = kind
 
     def register(self, name: str) -> Callable[[type], type]:
         """Class decorator: ``<kind>=name`` builds from this config class."""
@@ -60,24 +60,12 @@ class Options(dict):
         """The keys of ``<kind>=name``."""
         return {f.name for f in fields(self.schema(name))}
 
-    def moved_message(self, key: str) -> Optional[str]:
-        """One line for a dotted key that moved (``optim.selector_grad`` -> ``selector.grad``), else None."""
-        new = self.moved.get(key.lstrip("+~"))
-        if new is None:
-            return None
-        return (f"{key} moved to {new} (G's training settings belong to the selector, and recipes are selectors: "
-                "e.g. selector=poi); set " + new)
-
     def foreign_key_message(self, name: str, key: str) -> str:
         """One line for ``<kind>.key`` given to ``<kind>=name``, which has no such key."""
         kind = self.kind
-        new = self.moved.get(f"{kind}.{key}", f"{kind}.{key}").split(".", 1)[1]
-        if new != key and new in self.keys_of(name):
-            return self.moved_message(f"{kind}.{key}")
-        owners = sorted(n for n in self if new in self.keys_of(n))
-        moved = f"; it moved to {kind}.{new}" if new != key else ""
-        where = f"; {kind}.{new} is a key of {kind}={', '.join(owners)}" if owners else ""
-        return (f"{kind}.{key}: {kind}={name} has no key {key!r}{moved}{where} (keys of {kind}={name}: "
+        owners = sorted(n for n in self if key in self.keys_of(n))
+        where = f"; {kind}.{key} is a key of {kind}={', '.join(owners)}" if owners else ""
+        return (f"{kind}.{key}: {kind}={name} has no key {key!r}{where} (keys of {kind}={name}: "
                 f"{', '.join(sorted(self.keys_of(name)))})")
 
 

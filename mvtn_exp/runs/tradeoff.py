@@ -43,7 +43,7 @@ class TradeoffError(ValueError):
 
 def job_rows(sweep_dir, retimed: bool = False, seed: int | None = None) -> list[dict]:
     """Every job of the sweep with its status; finished ones carry ``test_acc``, ``dataset`` and the cost.
-    ``retimed``: ``infer_ms_per_shape`` from each finished job's ``retimed.json`` (``engine/retime.py``),
+    ``retimed``: ``infer_ms_per_shape`` from each finished job's ``retimed.json`` (``runs/retime.py``),
     the run's own timing kept as ``infer_ms_in_run``. ``seed``: only the jobs of that run seed (its
     composed config's ``seed``), e.g. a grid's seed-0 runs against a search's one run per setting."""
     sweep_dir = Path(sweep_dir)

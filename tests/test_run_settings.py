@@ -1,12 +1,12 @@
-"""One definition of a setting (``engine/run_keys.py``) for every reader of finished runs."""
+"""One definition of a setting (``runs/settings.py``) for every reader of finished runs."""
 from __future__ import annotations
 
 import json
 import re
 from pathlib import Path
 
-from mvtn_exp.engine import run_keys, sweep
-from mvtn_exp.engine.compare import find_runs
+from mvtn_exp.runs import settings as run_keys, sweep
+from mvtn_exp.runs.compare import find_runs
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mvtn_exp"
 
@@ -33,6 +33,6 @@ def test_sweep_summaries_and_compare_agree_on_threads_and_overwrite(tmp_path):
 
 
 def test_no_second_list_of_run_local_keys_in_the_package():
-    second = [p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py") if p.name != "run_keys.py"
+    second = [p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py") if p.name != "settings.py"
               and re.search(r"""\(\s*["']seed["']\s*,\s*["'](device|ckpt_path|threads)""", p.read_text())]
-    assert not second, f"a second definition of what is not a setting in {second}: use engine/run_keys.py"
+    assert not second, f"a second definition of what is not a setting in {second}: use runs/settings.py"

@@ -25,10 +25,10 @@ import torch
 
 from ..data.datasets import build_dataset
 from ..render import accel
-from ..schema import resolve_device
+from ..config.schema import resolve_device
 from ..tasks import classification
-from . import checkpoint
-from .provenance import provenance
+from ..runtime import checkpoint
+from ..engine.provenance import provenance
 
 RETIMED = "retimed.json"
 
@@ -41,8 +41,8 @@ def retime_job(job_dir, passes: int = 3) -> dict:
     """Time ``job_dir``'s test pass again (module docstring); returns and writes ``retimed.json``:
     ``infer_ms_per_shape`` (median of ``passes`` after one warm-up), ``passes_ms`` (each pass, ms
     per shape), ``threads``, ``test_acc`` (reproduced), ``provenance`` (machine and commit)."""
-    from .evaluation import config_from_checkpoint, load_model  # (evaluation imports the trainer)
-    from .trainer import eval_loader
+    from ..evaluation.evaluate import config_from_checkpoint, load_model  # (evaluation imports the trainer)
+    from ..engine.trainer import eval_loader
 
     job_dir = Path(job_dir)
     path = job_dir / "best.pt"

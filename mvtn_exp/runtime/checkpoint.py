@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..selectors import config as selector_config
 
 # config keys (dotted) whose change makes a checkpoint's weights meaningless for the new config
 MODEL_KEYS = ("views", "image_size", "selector", "point_encoder", "backbone.name", "mvnet", "dataset.name",
@@ -22,8 +21,7 @@ MODEL_KEYS = ("views", "image_size", "selector", "point_encoder", "backbone.name
 NUMPY_ARRAYS = [(getattr(np, "_core", None) or np.core).multiarray._reconstruct, np.ndarray, np.dtype, type(np.dtype(np.uint32))]
 
 
-# 3: one schema per selector option, G's training keys in the selector (selectors/config.py: upgrade)
-# 2: "epoch" counts completed epochs and "best_epoch" is 1-based, as in metrics.json (1: both 0-based)
+# what ``save_atomic``'s payload holds; another format is refused (docs/training.md#checkpoint-formats)
 FORMAT = 3
 
 
@@ -113,13 +111,10 @@ def load(path, map_location="cpu") -> dict:
         raise CheckpointMismatch(f"checkpoint {str(path)!r} cannot be read ({type(exc).__name__}: {first})") from exc
     if not isinstance(payload, dict) or "model" not in payload or "config" not in payload:
         raise CheckpointMismatch(f"checkpoint {str(path)!r} was not written by mvtn-train (no model/config)")
-    if int(payload.get("format", 1)) < 2 and "epoch" in payload:  # older files counted epochs from 0
-        payload["epoch"] = int(payload["epoch"]) + 1
-        payload["best_epoch"] = int(payload.get("best_epoch", -1)) + 1
-        payload["format"] = 2
-    if int(payload.get("format", 1)) < 3 and isinstance(payload["config"], dict):
-        payload["config"] = selector_config.upgrade(payload["config"])
-        payload["format"] = FORMAT
+    written = int(payload.get("format", 1))
+    if written != FORMAT:
+        raise CheckpointMismatch(f"checkpoint {str(path)!r} is in format {written}; this mvtn-exp reads format {FORMAT} "
+                                 f"only (docs/training.md#checkpoint-formats names the release that reads format {written})")
     return payload
 
 
@@ -141,11 +136,11 @@ def _leaves(value, prefix: str) -> dict:
     return {prefix: value}
 
 
-def check_compatible(saved: dict, current: dict, keys=MODEL_KEYS) -> None:
-    """Raise ``CheckpointMismatch`` naming every model-defining setting (dotted key) that differs."""
+def check_compatible(saved: dict, current: dict, keys=MODEL_KEYS, free=()) -> None:
+    """Raise ``CheckpointMismatch`` naming every model-defining setting (dotted key) that differs;
+    ``free``: dotted keys that say how a part trains, not what the model is (may differ)."""
     diff = []
-    name = (_get(current, "selector.name") or _get(saved, "selector.name") or "")
-    free = {f"selector.{k}" for k in getattr(selector_config.REGISTRY.get(name), "training_keys", ())}
+    free = set(free)
     for key in keys:
         old, new = _leaves(_get(saved, key), key), _leaves(_get(current, key), key)
         for leaf in sorted(set(old) | set(new)):

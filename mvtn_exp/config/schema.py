@@ -12,22 +12,24 @@ paths -> PathsConfig; ``augment`` (AugmentConfig) has no group files: set ``augm
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Optional
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional
 
 from .checks import at_least, fraction, one_of  # noqa: F401 (re-exported)
-from .data.synthetic import ROTATIONS
-from .models.backbones import BackboneConfig, SmallCNNConfig
-from .models.multiview import MVCNNConfig, MVNetConfig
-from .models.point_encoders import PointEncoderConfig, PointNetConfig
+from ..data.config import DatasetConfig
+from ..data.synthetic import ROTATIONS
+from ..models.backbones import BackboneConfig, SmallCNNConfig
+from ..models import pretrained
+from ..models.multiview import MVCNNConfig, MVNetConfig
+from ..models.precision import check_precision
+from ..models.point_encoders import PointEncoderConfig, PointNetConfig
 from .options import OPTIONS, load
-from .render.config import RendererConfig
-from .selectors.config import SelectorConfig
-from .selectors.mvtn import MVTNSphericalConfig
+from ..render.config import RendererConfig
+from ..selectors.config import SelectorConfig
+from ..selectors.mvtn import MVTNSphericalConfig
+from ..tasks.config import TaskConfig
 
-DATASETS = ("synthetic", "synthetic_views", "modelnet40", "scanobjectnn", "shapenet")
-SHAPES = ("mesh", "points")
-TASKS = ("classification",)
 OPTIMIZERS = ("adamw",)
 SCHEDULES = ("cosine", "step")
 
@@ -57,99 +59,6 @@ def resolve_device(device: str | None) -> str:
 
         return "cuda" if torch.cuda.is_available() else "cpu"
     return device
-
-
-VIEW_FAMILIES = ("cup", "decoys", "slab")  # dataset=synthetic_views families (data/synthetic_views.py FAMILIES)
-
-SCANOBJECTNN_FORMATS = ("h5", "object_dataset")  # the h5 release; the per-object files
-
-
-@dataclass
-class DatasetConfig:
-    """Which shapes. ``root``: the dataset folder (synthetic: its cache folder).
-
-    ``shape``: render meshes or point clouds; ``num_points``: points per shape fed to G (and
-    rendered when ``shape=points``). ``rotate``: none | y (about the vertical axis) | so3 (synthetic
-    datasets only; ``dataset=synthetic_views`` sets so3). ``seed``: the data seed (synthetic
-    geometry), separate from the training seed.
-    ``num_per_class`` / ``max_faces``: synthetic shapes per class for (train, val, test) and their
-    face budget. ``max_vertices``: real meshes are simplified to about this many vertices (0: never;
-    the paper used 20,000). ``strict``: a broken shape file stops the run instead of being skipped
-    and counted. ``cache_dir``: where preprocessed real datasets are cached. ShapeNet:
-    ``split_csv`` (default ``<root>/all.csv``, the SHREC17 split) and ``synset_dict`` (default
-    ``<root>/shapenet_synset_dict_v2.json``, synset id -> name). ModelNet40 ``format``: ``off``
-    (meshes), ``normal_resampled`` or ``ply_hdf5_2048`` (the PointNet authors' point releases);
-    ScanObjectNN ``format``: ``h5`` (the h5 release, 2,048 points per cloud) or ``object_dataset``
-    (the per-object files, any ``num_points``: the paper's 5,000, L251; obj_bg and obj_only only).
-    ``variant``: ScanObjectNN variant (obj_bg, obj_only, pb_t50_rs); ``family``: the synthetic_views
-    family (cup, decoys, slab; empty for every other dataset); ``val_fraction``: share of
-    the official train split held out for model selection when a dataset has no val split.
-    ``num_workers``: DataLoader worker processes; null: automatic (none on CPU, where the loader's
-    work is small next to the step's; on CUDA up to 4, within the process's share of the cores:
-    ``engine/loaders.workers``).
-    """
-
-    name: str = "synthetic"
-    root: str = "${paths.cache_dir}/synthetic"
-    shape: str = "mesh"
-    num_points: int = 1024
-    rotate: str = "none"
-    seed: int = 0
-    num_per_class: list[int] = field(default_factory=lambda: [24, 12, 24])
-    max_faces: int = 2000
-    max_vertices: int = 20000
-    strict: bool = False
-    cache_dir: str = "${paths.cache_dir}"
-    variant: str = ""
-    family: str = ""
-    format: str = "off"
-    split_csv: Optional[str] = None
-    synset_dict: Optional[str] = None
-    val_fraction: float = 0.1
-    num_workers: Optional[int] = None
-
-    def validate(self) -> "DatasetConfig":
-        one_of("dataset.name", self.name, DATASETS)
-        one_of("dataset.shape", self.shape, SHAPES)
-        one_of("dataset.rotate", self.rotate, ROTATIONS)
-        if self.name == "scanobjectnn":
-            if self.format == "off":  # (configs stored before ScanObjectNN had formats: the h5 release)
-                self.format = "h5"
-            one_of("dataset.format", self.format, SCANOBJECTNN_FORMATS)
-            if self.format == "object_dataset" and self.variant == "pb_t50_rs":
-                raise ValueError("dataset.format=object_dataset: the per-object files hold obj_bg and obj_only; "
-                                 "pb_t50_rs exists only in the h5 release (dataset.format=h5)")
-        else:
-            one_of("dataset.format", self.format, ("off", "normal_resampled", "ply_hdf5_2048"))
-        if self.name == "synthetic_views":
-            one_of("dataset.family", self.family or "cup", VIEW_FAMILIES)
-        elif self.family:
-            raise ValueError(f"dataset.family={self.family}: only dataset=synthetic_views has families; drop it for "
-                             f"dataset={self.name}")
-        at_least("dataset.num_points", self.num_points, 1)
-        at_least("dataset.seed", self.seed, 0)
-        at_least("dataset.max_faces", self.max_faces, 1)
-        at_least("dataset.max_vertices", self.max_vertices, 0)
-        if self.num_workers is not None:
-            at_least("dataset.num_workers", self.num_workers, 0)
-        if len(self.num_per_class) != 3 or min(self.num_per_class) < 1:
-            raise ValueError(f"dataset.num_per_class={list(self.num_per_class)}: expected 3 counts >= 1 "
-                             "(train, val, test)")
-        fraction("dataset.val_fraction", self.val_fraction)
-        return self
-
-
-@dataclass
-class TaskConfig:
-    """The task head and its loss. ``classification``: cross-entropy over the dataset's classes."""
-
-    name: str = "classification"
-    label_smoothing: float = 0.0
-
-    def validate(self) -> "TaskConfig":
-        one_of("task", self.name, TASKS)
-        fraction("task.label_smoothing", self.label_smoothing)
-        return self
 
 
 @dataclass
@@ -221,17 +130,6 @@ class PathsConfig:
     cache_dir: str = "${paths.output_dir}/cache"
 
 
-PRECISIONS = ("fp32", "bf16", "fp16")
-
-
-def check_precision(precision: str, device: str) -> None:
-    """One-line errors naming the keys, for a precision the device cannot run (``models/precision.py``)."""
-    one_of("precision", precision, PRECISIONS)
-    if precision == "fp16" and not str(device).startswith("cuda"):
-        raise ValueError(f"precision=fp16 with device={device}: float16 autocast needs CUDA; on CPU use "
-                         "precision=bf16 or fp32")
-
-
 # What a training run can return to an optimising sweeper (``TrainConfig.objectives``): validation
 # accuracy and the measured cost of ``engine/cost.py``; never a test metric.
 OBJECTIVES = ("best_val_acc", "cost.infer_ms_per_shape", "cost.train_seconds_per_shape", "cost.train_peak_mib",
@@ -296,7 +194,7 @@ class TrainConfig:
         r = self.renderer
         if r.memory_budget_mb is None or not isinstance(self.image_size, int):
             return
-        from .render import budget
+        from ..render import budget
 
         kind = "points" if self.dataset.shape == "points" else ("soft" if r.mode == "soft" else "hard")
         least = budget.smallest_mb(kind, self.views, self.image_size, self.batch_size)
@@ -429,7 +327,7 @@ GROUPS = {"dataset": DatasetConfig, "renderer": RendererConfig, "selector": Sele
           "task": TaskConfig, "optim": OptimConfig, "logger": LoggerConfig, "paths": PathsConfig}
 
 
-OPTION_KINDS = ("selector", "point_encoder", "backbone", "mvnet")  # groups with one schema per option (options.py)
+OPTION_KINDS = ("selector", "point_encoder", "backbone", "mvnet")  # groups with one schema per option (config/options.py)
 
 
 def _option_schemas(data: dict, cfg) -> dict:
@@ -471,7 +369,7 @@ def typed_train_config(cfg):
         kind, _, sub = key.partition(".")
         if kind in options and sub:
             raise ValueError(OPTIONS[kind].foreign_key_message(options[kind].name, sub)) from None
-        raise ValueError(OPTIONS["selector"].moved_message(key) or str(exc).splitlines()[0]) from None
+        raise ValueError(str(exc).splitlines()[0]) from None
 
 
 def register_configs() -> None:
@@ -482,8 +380,6 @@ def register_configs() -> None:
 
     from omegaconf import OmegaConf
 
-    from .engine.search_sweeper import register as register_search_sweeper
-
     load()
     cs = ConfigStore.instance()
     train = OmegaConf.structured(TrainConfig)
@@ -491,7 +387,31 @@ def register_configs() -> None:
         train[kind] = OmegaConf.structured(GROUPS[kind])
     cs.store(name="train_schema", node=train)
     cs.store(name="eval_schema", node=EvalConfig)
-    register_search_sweeper(cs)  # hydra/sweeper=mvtn_optuna
     for kind in OPTION_KINDS:
         for name, option in OPTIONS[kind].items():
             cs.store(group=f"schema/{kind}", name=name, node=option)
+
+
+def as_config(cfg) -> TrainConfig:
+    """TrainConfig | DictConfig | dict -> a validated TrainConfig (type-checked against the schema,
+    interpolations resolved)."""
+    from omegaconf import OmegaConf
+
+    obj: TrainConfig = OmegaConf.to_object(typed_train_config(cfg))
+    return obj.validate()
+
+
+PATH_KEYS = (("dataset", "root"), ("dataset", "cache_dir"), ("dataset", "split_csv"), ("dataset", "synset_dict"),
+             ("backbone", "weights"), ("paths", "data_dir"), ("paths", "output_dir"), ("paths", "cache_dir"))
+
+
+def config_dict(cfg: TrainConfig) -> dict:
+    """``cfg`` as plain data, with its file and folder paths made absolute (``PATH_KEYS``): what a
+    checkpoint and metrics.json record works from any working directory (``backbone.weights=imagenet``
+    names published weights, not a file: kept as it is)."""
+    out = asdict(cfg)
+    for group, key in PATH_KEYS:
+        value = out.get(group, {}).get(key)
+        if isinstance(value, str) and value and not pretrained.is_source(value):
+            out[group][key] = str(Path(value).expanduser().resolve())
+    return out

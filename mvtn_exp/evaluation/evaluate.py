@@ -11,11 +11,12 @@ import torch
 from ..data.datasets import build_dataset
 from ..model import build_mvtn
 from ..render import accel
-from ..schema import EvalConfig, TrainConfig, resolve_device
+from ..config.schema import EvalConfig, TrainConfig, resolve_device
 from ..tasks import classification
-from . import checkpoint, eval_modes
-from .provenance import provenance
-from .trainer import as_config, config_dict, eval_loader, view_report, write_results
+from ..runtime import checkpoint
+from . import modes as eval_modes
+from ..engine.provenance import provenance
+from ..engine.trainer import as_config, config_dict, eval_loader, view_report, write_results
 
 
 def config_from_checkpoint(state: dict, path) -> TrainConfig:
