@@ -4,8 +4,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from mvtn_exp.models.backbones import (BACKBONES, SmallCNN, build_backbone, resnet18, resnet34,
-                                       resnet50, small_cnn)
+from mvtn_exp.config.options import OPTIONS, load
+from mvtn_exp.models.backbones import SmallCNN, build_backbone, resnet18, resnet34, resnet50, small_cnn
+
+load("backbone")
 
 
 def n_params(model):
@@ -157,7 +159,7 @@ def test_missing_and_unreadable_files(tmp_path):
         resnet18(weights=notsd)
 
 
-@pytest.mark.parametrize("name", sorted(BACKBONES))
+@pytest.mark.parametrize("name", sorted(OPTIONS["backbone"]))
 def test_forward_backward_every_backbone(name):
     torch.manual_seed(0)
     model = build_backbone(name, num_classes=10).train()
@@ -194,4 +196,4 @@ def test_unknown_name_lists_allowed():
     assert "resnet101" in msg
     for name in ("resnet18", "resnet34", "resnet50", "small_cnn"):
         assert name in msg
-    assert set(BACKBONES) == {"resnet18", "resnet34", "resnet50", "small_cnn", "vit_tiny", "vit_small", "vit_base"}
+    assert set(OPTIONS["backbone"]) == {"resnet18", "resnet34", "resnet50", "small_cnn", "vit_tiny", "vit_small", "vit_base"}

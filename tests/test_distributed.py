@@ -180,7 +180,7 @@ def test_resuming_with_another_number_of_processes_is_one_line_and_changes_nothi
 FAIL_ON_RANK = """
 import os
 if os.environ.get("RANK") == "1":  # rank 1's third training step raises, as a user mistake would
-    import mvtn_exp.engine.trainer as t
+    import mvtn_exp.engine.epoch as t
     _augment, _calls = t.augment, [0]
 
     def augment(batch, cfg):
@@ -212,7 +212,7 @@ def test_one_process_failing_stops_every_process_with_one_line_each(cache, tmp_p
 KILL_FIRST_ATTEMPT = """
 import os
 if os.environ.get("RANK") == "1" and os.environ.get("TORCHELASTIC_RESTART_COUNT") == "0":
-    import mvtn_exp.engine.trainer as t  # rank 1 dies (as kill -9) in epoch 2 of the first attempt
+    import mvtn_exp.engine.epoch as t  # rank 1 dies (as kill -9) in epoch 2 of the first attempt
     _augment, _calls = t.augment, [0]
 
     def augment(batch, cfg):

@@ -144,6 +144,7 @@ HYP = {"selector.name": "mvtn_poi", "selector.hypotheses": 2, "selector.race_epo
        "selector.grad": "smoothed", "selector.lr": 1e-2}
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_exploring_run_decides_records_and_resumes_exactly(tmp_path):
     cache = str(tmp_path / "cache")
     full = train(tiny(cache, epochs=2, **HYP), tmp_path / "full")
@@ -184,6 +185,7 @@ def test_bad_hypothesis_settings_are_refused(tmp_path, overrides, needle):
         as_config(tiny(str(tmp_path), **overrides))
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_a_clear_lead_ends_exploration_early(tmp_path):
     """hypothesis_z=0: any lead is clear, so the race ends after the first epoch, and the later
     epochs render the active hypothesis alone although hypothesis_epochs allows more."""

@@ -12,7 +12,7 @@ from unittest import mock
 import pytest
 from omegaconf import OmegaConf
 
-from mvtn_exp.cli.train import launcher_threads, usable_cores
+from mvtn_exp.engine.jobs import launcher_threads, usable_cores
 
 ROOT = Path(__file__).resolve().parents[1]
 JOBLIB = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
@@ -84,7 +84,7 @@ def test_a_requeued_cluster_job_goes_on_from_its_last_checkpoint(tmp_path, monke
     """Started again by submitit (SUBMITIT_EXECUTOR set) in a run dir holding last.pt and no
     metrics.json, the job resumes from it (the resume itself: test_train_e2e's CLI resume tests);
     a first start, a finished run, or a run outside submitit does not."""
-    from mvtn_exp.cli.train import requeued_checkpoint
+    from mvtn_exp.engine.jobs import requeued_checkpoint
 
     run = tmp_path / "run"
     run.mkdir()
@@ -231,7 +231,7 @@ def test_an_interrupted_sweep_resumes_its_unfinished_jobs_only(default_folder_sw
 
 
 def test_joblib_jobs_spread_over_the_visible_gpus():
-    from mvtn_exp.cli.train import launcher_device
+    from mvtn_exp.engine.jobs import launcher_device
 
     joblib = OmegaConf.create({"_target_": JOBLIB, "n_jobs": 4})
     assert [launcher_device(joblib, "cuda", n, gpus=2) for n in range(4)] == ["cuda:0", "cuda:1", "cuda:0", "cuda:1"]

@@ -14,9 +14,10 @@ from mvtn_exp.engine import train
 from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
 from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.model import build_mvtn
-from mvtn_exp.models.backbones import BACKBONES, FEATURE_DIMS, build_backbone
-from mvtn_exp.models.multiview import MULTIVIEW, build_multiview
-from mvtn_exp.models.point_encoders import POINT_ENCODERS, build_point_encoder
+from mvtn_exp.config.options import OPTIONS, load
+from mvtn_exp.models.backbones import build_backbone
+from mvtn_exp.models.multiview import build_multiview
+from mvtn_exp.models.point_encoders import build_point_encoder
 from mvtn_exp.models.view_transformer import ViewTransformer
 from mvtn_exp.config.schema import EvalConfig
 from mvtn_exp.selectors import NoisySelector, build_selector
@@ -24,6 +25,8 @@ from mvtn_exp.selectors import NoisySelector, build_selector
 from conftest import tiny_config
 
 ROOT = Path(__file__).resolve().parents[1]
+load()
+IMAGE_NETS = sorted(n for n, c in OPTIONS["mvnet"].items() if getattr(c.network, "reads_images", True))
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +77,7 @@ def test_view_transformer_any_m_finite_and_order_free(M):
     net = _vt(blocks=2, heads=4).eval()
     x = torch.rand(2, M, 3, 32, 32, generator=torch.Generator().manual_seed(0), requires_grad=True)
     logits, feats = net(x)
-    assert logits.shape == (2, 5) and feats.shape == (2, FEATURE_DIMS["small_cnn"])
+    assert logits.shape == (2, 5) and feats.shape == (2, OPTIONS["backbone"]["small_cnn"].feature_dim)
     assert torch.isfinite(logits).all()
     perm = torch.randperm(M, generator=torch.Generator().manual_seed(1))
     torch.testing.assert_close(net(x[:, perm])[0], logits, rtol=1e-5, atol=1e-5)
@@ -139,9 +142,11 @@ def test_viewgcn_settings_it_cannot_take_are_refused_naming_the_keys(cache, sett
         assert needle in str(err.value), (needle, str(err.value))
 
 
-def test_feature_dims_table_matches_the_backbones():
-    for name in BACKBONES:
-        assert build_backbone(name, 3).feature_dim == FEATURE_DIMS[name], name
+def test_every_backbone_config_states_the_feature_dim_it_builds():
+    """``feature_dim`` is read before anything is built (the view transformer's check): it must be
+    the built backbone's (the cheap ones are also built in tests/test_option_registry.py)."""
+    for name, cls in OPTIONS["backbone"].items():
+        assert build_backbone(name, 3).feature_dim == cls.feature_dim, name
 
 
 # --------------------------------------------------------------------------- noisy views
@@ -180,8 +185,8 @@ def test_noisy_selector_bad_settings():
 
 # --------------------------------------------------------------------------- every registered component
 
-@pytest.mark.parametrize("mvnet", sorted(MULTIVIEW))
-@pytest.mark.parametrize("backbone", sorted(BACKBONES))
+@pytest.mark.parametrize("mvnet", IMAGE_NETS)
+@pytest.mark.parametrize("backbone", sorted(OPTIONS["backbone"]))
 @pytest.mark.parametrize("M", [1, 12])
 def test_every_multiview_network_with_every_backbone(mvnet, backbone, M):
     """B = 2: output shapes, finite values, gradients to the images and to every used parameter."""
@@ -208,7 +213,7 @@ def test_every_multiview_network_with_every_backbone(mvnet, backbone, M):
             assert p.grad is not None and torch.isfinite(p.grad).all(), name
 
 
-@pytest.mark.parametrize("name", sorted(POINT_ENCODERS))
+@pytest.mark.parametrize("name", sorted(OPTIONS["point_encoder"]))
 def test_every_point_encoder_b2(name):
     torch.manual_seed(0)
     enc = build_point_encoder(name, out_features=7).train()

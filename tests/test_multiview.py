@@ -3,9 +3,12 @@ import torch
 
 from mvtn_exp.models.backbones import resnet18, small_cnn
 from mvtn_exp.models.late_fusion import PointLateFusion
-from mvtn_exp.models.multiview import MULTIVIEW, LogitMean, MVCNN, build_multiview
+from mvtn_exp.config.options import OPTIONS, load
+from mvtn_exp.models.multiview import LogitMean, MVCNN, build_multiview
 
 K, W = 5, 8  # classes, small_cnn width (feature_dim 64)
+load("mvnet")
+IMAGE_NETS = sorted(n for n, c in OPTIONS["mvnet"].items() if getattr(c.network, "reads_images", True))
 
 
 def _images(b, m, size=32, seed=0, requires_grad=False):
@@ -63,7 +66,7 @@ def test_non_contiguous_input_and_non_square_images():
     torch.testing.assert_close(feats, ref, atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize("name", sorted(MULTIVIEW))
+@pytest.mark.parametrize("name", IMAGE_NETS)
 def test_view_permutation_invariance(name):
     torch.manual_seed(0)  # (the same weights whatever ran before)
     net = build_multiview(name, small_cnn(num_classes=K, width=W), K).eval()
@@ -76,7 +79,7 @@ def test_view_permutation_invariance(name):
     torch.testing.assert_close(f1, f2, atol=1e-5, rtol=1e-6)
 
 
-@pytest.mark.parametrize("name", sorted(MULTIVIEW))
+@pytest.mark.parametrize("name", IMAGE_NETS)
 def test_batch_equals_single_shape_calls(name):
     net = build_multiview(name, "small_cnn", K).eval()
     x, views = _images(3, 4, seed=1), _views(3, 4)
@@ -89,7 +92,7 @@ def test_batch_equals_single_shape_calls(name):
     torch.testing.assert_close(feats, torch.cat([s[1] for s in singles]), atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize("name", sorted(MULTIVIEW))
+@pytest.mark.parametrize("name", IMAGE_NETS)
 def test_gradients_reach_backbone_and_input_images(name):
     net = build_multiview(name, small_cnn(num_classes=K, width=W), K, dropout=0.2).train()
     x = _images(2, 3, requires_grad=True)

@@ -5,8 +5,8 @@ import torch
 
 from conftest import box_mesh
 from mvtn_exp.data.shapes import Meshes, PointClouds
-from mvtn_exp.models.point_encoders import (POINT_ENCODERS, PaperPointNet, PointNet, build_point_encoder,
-                                            sample_points)
+from mvtn_exp.config.options import OPTIONS, load
+from mvtn_exp.models.point_encoders import PaperPointNet, PointNet, build_point_encoder, sample_points
 from mvtn_exp.models.pooled_layer import _PooledLayer, pooled_layer
 
 
@@ -134,7 +134,8 @@ def test_pointnet_rejects_bad_input():
 
 
 def test_point_encoder_registry():
-    assert set(POINT_ENCODERS) == {"pointnet", "pointnet_paper", "dgcnn"}
+    load("point_encoder")
+    assert set(OPTIONS["point_encoder"]) == {"pointnet", "pointnet_paper", "dgcnn"}
     assert build_point_encoder("pointnet", out_features=12, use_tnet=True).tnet is not None
     assert build_point_encoder("dgcnn", out_features=12, k=4).k == 4
     assert build_point_encoder("pointnet_paper", out_features=12, dropout=0.0).drop.p == 0.0

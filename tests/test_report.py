@@ -176,6 +176,7 @@ def _grid(name: str, command: str) -> list[list[str]]:
     return [[f"{k}={v.strip()}" for k, v in zip(keys, combo)] for combo in itertools.product(*keys.values())]
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_every_row_is_what_its_experiment_runs():
     """Each row's conditions are met by at least one job of the experiment its table names, as its
     command gives it (a row naming a key or value that the experiment never produces fails)."""

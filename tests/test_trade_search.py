@@ -13,7 +13,7 @@ import sys
 import pytest
 import yaml
 
-from mvtn_exp.cli.train import objective_values
+from mvtn_exp.engine.jobs import objective_values
 from mvtn_exp.cli.tradeoff import main as tradeoff_main
 from mvtn_exp.plugins.trade_search import CONDITIONAL, conditional_keys
 from mvtn_exp.runs.tradeoff import compare_fronts, hypervolume, write_tradeoff

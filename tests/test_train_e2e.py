@@ -303,6 +303,7 @@ def test_cli_resume_from_the_checkpoint_alone_goes_on_in_place(cache, tmp_path):
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "no such checkpoint file" in bad.stderr
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_cli_sigterm_keeps_the_last_epoch_and_says_how_to_resume(cache, tmp_path):
     import signal
     import time
@@ -539,6 +540,7 @@ def _scripted_validation(monkeypatch, accs):
     monkeypatch.setattr(trainer, "validate", validate)
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_patience_stops_after_epochs_without_a_better_validation(cache, tmp_path, monkeypatch):
     """patience=2: best 0.5 at epoch 2, not beaten at 3 (0.4) or 4 (0.5, a tie): stop before epoch 5;
     best.pt (epoch 2) is tested; the stopped run, resumed, stops again without training."""

@@ -282,6 +282,7 @@ def test_c_trains_on_jittered_views_while_g_probes_its_own(tmp_path, monkeypatch
         as_config(tiny(cache, **{"selector.train_jitter": 5.0}))
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_smoothed_resume_is_exact(tmp_path):
     cache = str(tmp_path / "cache")
     kw = {"selector.grad": "smoothed", "selector.probe_pairs": 1}

@@ -20,14 +20,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import json
 import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from ..runs.compare import CompareError, Side, _check_pair, compare, find_runs, flatten, parse_count, to_markdown, write
+from ..runs.compare import CompareError, Side, _check_pair, compare, parse_count, to_markdown, write
+from ..runs.folders import FolderError, find_runs, flatten, has_metrics, read_status
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -68,20 +68,22 @@ def plan_runs(sides: list[str], seeds: list[int], common: list[str], out: Path, 
     return tasks
 
 
-def _status(run_dir: Path) -> str:
+def _status(run_dir: Path) -> str | None:
+    """The outcome ``run_dir``'s ``status.json`` records; None without one."""
     try:
-        return str(json.loads((run_dir / "status.json").read_text()).get("status"))
+        record = read_status(run_dir)
+        return None if record is None else str(record.get("status"))
     except (OSError, ValueError, AttributeError):
         return "unreadable"
 
 
 def _train(run_dir: Path, argv: list[str], log: Path, threads: int | None) -> str:
     """One ``mvtn-train`` run into ``run_dir`` (or its resumption); returns ok | failed | done."""
-    if (run_dir / "metrics.json").is_file():
+    if has_metrics(run_dir):
         return "done"
     if (run_dir / "last.pt").is_file():  # interrupted: go on from the last finished epoch
         argv = [f"ckpt_path={run_dir / 'last.pt'}"]
-    elif (run_dir / "status.json").is_file() and _status(run_dir) != "interrupted":
+    elif _status(run_dir) not in (None, "interrupted"):
         return "failed"  # (interrupted before its first epoch ended: started again)
     env = dict(os.environ)
     if threads:
@@ -183,7 +185,7 @@ def main(argv=None) -> None:
         if args.run:
             _relabel(result, out, args.run)
         md, _ = write(result, out)
-    except CompareError as exc:
+    except (CompareError, FolderError) as exc:
         print(f"mvtn-compare: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     except OSError as exc:

@@ -12,7 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..runs.compare import CompareError, find_runs
+from ..runs.compare import CompareError
+from ..runs.folders import FolderError, find_runs
 from ..engine.provenance import package_version
 from ..runs.report import TABLES_FILE, ReportError, load_tables, paper_markdown, report, to_markdown, write
 
@@ -37,7 +38,7 @@ def main(argv=None) -> None:
         runs = find_runs(args.folders)
         result = report(tables, runs)
         md, _ = write(result, args.out)
-    except (ReportError, CompareError, OSError) as e:
+    except (ReportError, CompareError, FolderError, OSError) as e:
         print(f"mvtn-report: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     print(to_markdown(result))

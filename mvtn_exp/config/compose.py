@@ -1,6 +1,7 @@
 """A command's config, checked before Hydra runs: the user's overrides against the schemas (one
-line naming the key, the file and the allowed keys, exit 2), ``--help`` and ``--version`` of the
-project, and ``compose_train_config`` for entry points outside Hydra's app."""
+line naming the key, the file and the allowed keys, exit 2), ``--help``, ``--version`` and ``--list
+KIND`` (the options of a kind, one line each) of the project, and ``compose_train_config`` for entry
+points outside Hydra's app."""
 from __future__ import annotations
 
 import dataclasses
@@ -164,10 +165,39 @@ DESCRIPTIONS = {
 NOT_GROUPS = ("evaluate", "hydra", "__pycache__")  # folders of the config package that are not choosable groups
 
 
+def list_kinds() -> list[str]:
+    """What ``--list`` takes: the option kinds (``config/options.py``), then ``experiment``."""
+    from .options import OPTIONS
+
+    return [*OPTIONS, "experiment"]
 
 
+def list_experiments(config_module: str = CONF_MODULE) -> list[tuple[str, str]]:
+    """``(name, first comment line)`` of every packaged ``experiment/NAME.yaml``, sorted by name
+    (Hydra's ``# @package`` line skipped)."""
+    rows = []
+    for path in sorted((package_conf(config_module) / "experiment").glob("*.yaml")):
+        comments = (ln.lstrip("#").strip() for ln in path.read_text().splitlines() if ln.startswith("#"))
+        rows.append((path.stem, next((c for c in comments if c and not c.startswith("@package")), "")))
+    return rows
 
 
+def print_list(prog: str, argv: list[str], config_module: str = CONF_MODULE) -> int:
+    """``--list KIND`` (or ``--list=KIND``): one line ``name  summary`` per option on stdout, 0; a
+    missing or unknown KIND: one line on stderr naming the kinds, 2."""
+    from .options import list_options
+
+    at = next(i for i, a in enumerate(argv) if a == "--list" or a.startswith("--list="))
+    kind = argv[at].partition("=")[2] or (argv[at + 1] if at + 1 < len(argv) else "")
+    if kind not in list_kinds():
+        print(f"{prog}: error: --list {kind or '(no kind)'}: expected one of {', '.join(list_kinds())}",
+              file=sys.stderr)
+        return 2
+    rows = list_experiments(config_module) if kind == "experiment" else list_options(kind)
+    width = max((len(name) for name, _ in rows), default=0)
+    for name, text in rows:
+        print(f"{name:<{width}}  {text}".rstrip())
+    return 0
 
 
 def project_help(prog: str, config_name: str, schema, config_module: str = CONF_MODULE,
@@ -210,6 +240,7 @@ def project_help(prog: str, config_name: str, schema, config_module: str = CONF_
             flat.append(f"{f.name}={'???' if default is dataclasses.MISSING else default}")
     lines += ["  " + "  ".join(flat[i:i + 6]) for i in range(0, len(flat), 6)] + nested
     lines += ["", "Bad input is one line on stderr naming the key and what is allowed, exit code 2.",
+              f"--list KIND: each option of a kind with one line on it (KIND: {', '.join(list_kinds())}).",
               "--version: the package version; --hydra-help: Hydra's own flags; README.md: the full documentation."]
     return "\n".join(lines)
 
@@ -225,6 +256,8 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
     if "--help" in argv or "-h" in argv:
         print(project_help(prog, config_name, schema, config_module, overrides=argv))
         sys.exit(0)
+    if any(a == "--list" or a.startswith("--list=") for a in argv):
+        sys.exit(print_list(prog, argv, config_module))
     _refuse_shadowed_main_config(prog, config_name)
     info = [a for a in argv if a in HYDRA_INFO_FLAGS or a.split("=")[0] in HYDRA_INFO_FLAGS]
     if info and any(a in MULTIRUN_FLAGS for a in argv):

@@ -14,11 +14,17 @@ Its ``conf/<kind>/<name>.yaml`` starts from the stored schema (``defaults: [/sch
 so ``mvnet=my_net mvnet.k=3`` (a key of another option) is refused at compose time, naming the
 option and the key (``foreign_key_message``). Every module of a kind's packages is imported before
 a registry is read (``load``), so a new option touches its own module and YAML only.
+
+The config class is the option's one entry: it builds the component (its ``build``; a model kind's
+class attribute ``network`` names the constructor, ``Options.lookup`` finds it by name) and says
+what the rest of the config needs to know (a backbone's ``feature_dim``). ``list_options(kind)``:
+each option with the first sentence of its config's docstring (``mvtn-train --list KIND``).
 """
 from __future__ import annotations
 
 import importlib
 import pkgutil
+import re
 from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Callable, Optional
 
@@ -56,6 +62,14 @@ class Options(dict):
             raise ValueError(f"{self.kind}={name!r}: expected one of {', '.join(sorted(self))}")
         return self[name]
 
+    def lookup(self, name: str, noun: str) -> type:
+        """The config class of ``name``, for the ``build_<kind>(name, ...)`` functions; unknown: one
+        line ``unknown <noun> 'name'; allowed: ...``."""
+        load(self.kind)
+        if name not in self:
+            raise ValueError(f"unknown {noun} {name!r}; allowed: {', '.join(sorted(self))}")
+        return self[name]
+
     def keys_of(self, name: str) -> set[str]:
         """The keys of ``<kind>=name``."""
         return {f.name for f in fields(self.schema(name))}
@@ -82,6 +96,23 @@ def load(kind: Optional[str] = None) -> None:
         pkg = importlib.import_module(package)
         for info in pkgutil.iter_modules(pkg.__path__):
             importlib.import_module(f"{package}.{info.name}")
+
+
+def summary(cls: type) -> str:
+    """The first sentence of ``cls``'s docstring, on one line, without rST's double backquotes (a
+    class without a docstring of its own: its nearest documented base's)."""
+    doc = next((c.__doc__ for c in cls.__mro__ if c.__doc__ and not c.__doc__.startswith(f"{c.__name__}(")), "")
+    text = " ".join(doc.split()).replace("``", "")
+    m = re.match(r"(.+?[.!?])(\s|$)", text)
+    return m.group(1) if m else text
+
+
+def list_options(kind: str) -> list[tuple[str, str]]:
+    """``(name, first sentence of its config's docstring)`` for every option of ``kind``, sorted by name."""
+    if kind not in OPTIONS:
+        raise ValueError(f"unknown option kind {kind!r}; expected one of {', '.join(OPTIONS)}")
+    load(kind)
+    return [(name, summary(cls)) for name, cls in sorted(OPTIONS[kind].items())]
 
 
 @dataclass

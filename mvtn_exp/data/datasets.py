@@ -98,6 +98,12 @@ def view_report(dataset, res: dict) -> dict:
     return report(res) if report is not None else {}
 
 
+def view_headline(dataset, report: dict) -> dict:
+    """The entries of ``report`` (``view_report``'s) the dataset names in ``VIEW_HEADLINE``, the
+    ones a training log shows every epoch (``{}`` for a dataset that names none)."""
+    return {k: report[k] for k in getattr(dataset, "VIEW_HEADLINE", ()) if report.get(k) is not None}
+
+
 def view_figures(dataset, res: dict, run_dir) -> None:
     """The dataset's own figures of the predicted views (``dataset.view_figures``), if it has any."""
     figures = getattr(dataset, "view_figures", None)

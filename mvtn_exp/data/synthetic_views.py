@@ -248,6 +248,8 @@ class SyntheticViews(PackedShapes):
     (see ``make_shape``; what ``sees_detail`` takes).
     """
 
+    VIEW_HEADLINE = ("detail_seen",)  # the training log's number for each epoch's validation views
+
     def __init__(self, root_cache_dir, split: str = "train", num_per_class=(24, 12, 24), seed: int = 0,
                  rotate: str = "so3", num_points: int = 1024, as_points: bool = False, max_faces: int = 2000,
                  progress: bool = True, family: str = "cup"):

@@ -11,40 +11,34 @@ from __future__ import annotations
 import json
 import logging
 import math
-import shutil
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import torch
-from tqdm.auto import tqdm
 
+from ..config.schema import TrainConfig, as_config, config_dict, resolve_device  # noqa: F401 (as_config: the engine's API)
 from ..data.datasets import build_dataset, view_figures
+from ..data.datasets import view_headline
 from ..data.datasets import view_report as dataset_view_report
 from ..model import MVTN, build_mvtn
 from ..models import sync_bn
 from ..models.precision import grad_scaler
-from ..config.schema import TrainConfig, as_config, config_dict, resolve_device  # noqa: F401 (as_config: the engine's API)
-from ..tasks import classification
-from ..tasks.robustness import random_rotations, turn_batch
-from ..viz.plots import confusion_png
 from ..runtime import checkpoint, distributed, seeding
+from ..tasks import classification
 from . import cost, loaders
-from ..models import precise_bn
 from . import run_dir as run_dir_state
-from .loaders import eval_loader, train_loader
 from .ema import ModelEMA
-from ..render.view_stats import view_stats
+from .epoch import TrainingDiverged, all_ranks_epoch, train_one_epoch  # noqa: F401 (TrainingDiverged: the engine's API)
+from .loaders import eval_loader, train_loader
 from .provenance import provenance
+from .records import epoch_line, epoch_record, log_epoch, run_metrics, say, view_report, write_results  # noqa: F401
 from .run_logger import RunLogger
 from .step_timer import StepTimer
+from .train_state import TrainState
 
 log = logging.getLogger("mvtn-train")
 SPLITS = ("train", "val", "test")
-
-
-class TrainingDiverged(RuntimeError):
-    """The loss became non-finite; the run stops (the last written checkpoints stay intact)."""
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -109,161 +103,14 @@ def make_optimizer(cfg: TrainConfig, model: MVTN, g_training):
     return opt, sched
 
 
-def selector_lr(opt) -> float | None:
-    """G's learning rate in ``opt`` now (None: no G group)."""
-    return next((g["lr"] for g in opt.param_groups if g["name"] == "selector"), None)
-
-
-def _grads_finite(params) -> bool:
-    """True when every gradient is finite: one host sync for all of them (not one per parameter)."""
-    flags = [torch.isfinite(p.grad).all() for p in params if p.grad is not None]
-    return bool(torch.stack(flags).all()) if flags else True
-
-
-def _grad_norm(params) -> float:
-    grads = [p.grad.detach().pow(2).sum() for p in params if p.grad is not None]
-    return float(torch.stack(grads).sum().sqrt()) if grads else 0.0
-
-
-def view_offsets(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
-    """Mean |u - u0| in degrees of predicted views ``[N, M]`` (azimuth modulo 360; 0 for fixed selectors)."""
-    init = getattr(model.selector, "initial_views", None)
-    if init is None or azim.numel() == 0:
-        return {"view_offset_azim": 0.0, "view_offset_elev": 0.0}
-    with torch.no_grad():
-        a0, e0 = (t.detach() for t in init(1)[:2])
-    d_azim = torch.remainder(azim - a0.cpu() + 180.0, 360.0) - 180.0  # the same camera 360 deg apart
-    return {"view_offset_azim": float(d_azim.abs().mean()),
-            "view_offset_elev": float((elev - e0.cpu()).abs().mean())}
-
-
-def view_report(model: MVTN, azim: torch.Tensor, elev: torch.Tensor) -> dict:
-    """``view_offsets`` and ``view_stats`` (spread over shapes, separation within a shape) of views ``[N, M]``."""
-    return {**view_offsets(model, azim, elev), **view_stats(azim, elev)}
-
-
-def augment(batch: dict, cfg: TrainConfig) -> dict:
-    """Training augmentation (``cfg.augment``): a new random rotation of every shape, from torch's RNG."""
-    if cfg.augment.rotate == "none":
-        return batch
-    return turn_batch(batch, random_rotations(len(batch["points"]), cfg.augment.rotate))
-
-
-def say(run_dir: Path, line: str) -> None:
-    """Print ``line`` and append it, time-stamped, to ``<run_dir>/train.log`` (the run's record);
-    with several processes only rank 0 does (``distributed``)."""
-    if not distributed.from_env().main:
-        return
-    print(line, flush=True)
-    with open(Path(run_dir) / "train.log", "a") as f:
-        f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] {line}\n")
-
-
-class _Epoch:
-    """Running sums of one training epoch."""
-
-    def __init__(self):
-        self.loss, self.correct, self.seen, self.skipped, self.clipped = 0.0, 0, 0, 0, 0
-        self.g_norm_sum, self.c_norm_sum, self.steps = 0.0, 0.0, 0
-
-    def add(self, loss, logits, labels, g_norm: float, c_norm: float) -> None:
-        """One finished step: C's mean ``loss`` over ``labels [B']`` and the gradient norms."""
-        n = len(labels)
-        self.loss += float(loss.detach()) * n
-        self.correct += int((logits.detach().argmax(1) == labels).sum())
-        self.seen += n
-        self.steps += 1
-        self.g_norm_sum += g_norm
-        self.c_norm_sum += c_norm
-
-    def result(self) -> dict:
-        n, s = max(self.seen, 1), max(self.steps, 1)
-        return {"loss": self.loss / n, "acc": self.correct / n, "seen": self.seen, "skipped": self.skipped, "clipped": self.clipped,
-                "grad_norm_selector": self.g_norm_sum / s, "grad_norm_mvnet": self.c_norm_sum / s}
-
-
-def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss_fn, timer: StepTimer,
-                    logger: RunLogger, step: int, g_training, scaler=None, ema=None,
-                    world: distributed.World = distributed.World()) -> tuple[dict, int]:
-    """One pass over ``loader``; returns (epoch sums, global step after it). ``g_training``: how G
-    trains (``selectors/training.py``: its ``train_step`` is the forward and the objective);
-    ``scaler``: fp16's loss scaler (``models/precision.py``); ``ema``: a ``ModelEMA`` updated after
-    every step."""
-    model.train()
-    groups = model.parameter_groups()
-    all_params = groups["mvnet"] + groups["selector"]
-    g_training.start_epoch(model, epoch, selector_lr(opt), hold_views=cfg.mvnet.holds_views(epoch))
-    acc = _Epoch()
-    scaling = scaler is not None and scaler.is_enabled()
-    bar = tqdm(loader, desc=f"train {epoch + 1}/{cfg.epochs}", leave=False, disable=None if cfg.logger.progress else True)
-    it = iter(bar)
-    while True:
-        with timer.stage("data"):
-            batch = next(it, None)
-            if batch is not None:
-                batch = augment(batch, cfg)
-        if batch is None:
-            break
-        out = g_training.train_step(model, batch, step, loss_fn, timer)
-        loss = out.loss
-        if not bool(torch.isfinite(loss.detach())):
-            raise TrainingDiverged(f"epoch {epoch + 1}, step {step + 1}: non-finite loss {float(loss.detach())} "
-                                   f"(batch {batch['names'][:3]}...); stopping, the last written checkpoint is intact")
-        with timer.stage("optimizer"):
-            opt.zero_grad(set_to_none=True)
-        objective = out.objective
-        if world.enabled:  # each rank's loss weighted by its share: the sum over ranks is the whole batch's mean
-            n_all = float(distributed.all_sum(torch.tensor(float(len(out.labels)), device=model.device), world))
-            objective = objective * (len(out.labels) / n_all)
-        timer.backward(scaler.scale(objective) if scaling else objective, out.views, out.images)
-        with timer.stage("optimizer"):
-            if world.enabled:  # every rank's gradient of its weighted share -> the whole batch's, on every rank
-                distributed.average_gradients(all_params, 1.0, world)
-            if scaling:
-                scaler.unscale_(opt)
-            if not _grads_finite(all_params):
-                acc.skipped += 1
-                opt.zero_grad(set_to_none=True)
-                if scaling:  # fp16: the scale was too high for this step; it is lowered (expected now and then)
-                    scaler.update()
-                else:
-                    log.warning("epoch %d step %d: non-finite gradients, step skipped", epoch + 1, step + 1)
-                step += 1
-                timer.step_done()  # its time was spent: count the step in the per-step means
-                continue
-            c_norm = _grad_norm(groups["mvnet"])
-            g_norm = 0.0
-            if groups["selector"]:
-                g_norm = float(torch.nn.utils.clip_grad_norm_(groups["selector"], g_training.clip))
-                acc.clipped += int(g_norm > g_training.clip)
-            if scaling:
-                scaler.step(opt)
-                scaler.update()
-            else:
-                opt.step()
-            if ema is not None:
-                ema.update(model, step)
-        timer.step_done()
-        acc.add(loss, out.logits, out.labels, g_norm, c_norm)
-        step += 1
-        if step % cfg.logger.log_every == 0:
-            logger.scalars({"train/loss": float(loss.detach()), "grad_norm/selector": g_norm,
-                            "grad_norm/mvnet": c_norm,
-                            **{f"lr/{g['name']}": g["lr"] for g in opt.param_groups}}, step)
-        bar.set_postfix(loss=f"{acc.loss / max(acc.seen, 1):.3f}", acc=f"{acc.correct / max(acc.seen, 1):.3f}")
-    return acc.result(), step
-
-
 def check_world(cfg: TrainConfig, world: distributed.World) -> None:
     """One-line errors for settings that several processes cannot share (before any work)."""
     if cfg.batch_size < 2 * world.size:
         raise ValueError(f"batch_size={cfg.batch_size} with {world.size} processes (WORLD_SIZE): batch_size is the global "
                          f"batch and every process needs at least 2 shapes of it; use batch_size >= {2 * world.size}")
-    extra = cfg.selector.modules(cfg.views)  # per-shape statistics of G's training (hypotheses, polarity)
-    if extra:
-        key = "hypotheses" if "hypotheses" in extra else "flip_explore"
-        raise ValueError(f"selector.{key}={getattr(cfg.selector, key)} with {world.size} processes: selector={cfg.selector.name}'s per-shape statistics "
-                         f"({', '.join(extra)}) are not shared between processes yet; run it in one process")
+    problem = cfg.selector.multi_process_problem(cfg.views, world.size)
+    if problem:
+        raise ValueError(problem)
 
 
 def check_split_sizes(datasets: dict, world: distributed.World) -> None:
@@ -272,68 +119,6 @@ def check_split_sizes(datasets: dict, world: distributed.World) -> None:
         if len(ds) < world.size:
             raise ValueError(f"{world.size} processes (WORLD_SIZE) but the {split} split has {len(ds)} shapes: use at "
                              f"most {len(ds)} processes")
-
-
-def all_ranks_epoch(tr: dict, world: distributed.World, device) -> dict:
-    """One epoch's ``_Epoch.result`` over every rank: sums of losses, hits and shapes (the gradient
-    norms and counts are the same on every rank, taken after the gradients were averaged)."""
-    sums = distributed.all_sum(torch.tensor([tr["loss"] * tr["seen"], tr["acc"] * tr["seen"], float(tr["seen"])],
-                                            dtype=torch.float64, device=device), world).tolist()
-    n = max(sums[2], 1.0)
-    return {**tr, "loss": sums[0] / n, "acc": sums[1] / n, "seen": int(sums[2])}
-
-
-def _resume(cfg: TrainConfig, run_dir: Path, model, opt, sched, state: dict, scaler, ema, classes: list,
-            world: distributed.World) -> tuple:
-    """Load ``state`` (a last.pt) into the run; returns ``(start epoch, best val acc, best epoch
-    (0-based), skipped steps, history, global step)``."""
-    saved = int(state.get("world_size", 1))
-    if saved != world.size:  # each process's random stream is in the checkpoint: the same number of processes
-        raise checkpoint.CheckpointMismatch(
-            f"checkpoint {cfg.ckpt_path!r} was written by a run of {saved} process(es) and this run has {world.size}: "
-            f"resume it with {saved} (torchrun --nproc_per_node={saved}, or no torchrun for 1) to go on exactly, or "
-            f"start a new run")
-    if list(state.get("classes", classes)) != classes:
-        raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} was trained on classes "
-                                            f"{state['classes']} but the dataset has {classes}")
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as exc:  # weights of another shape: one line, not a traceback
-        raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r}: weights do not fit the model its config "
-                                            f"builds ({' '.join(str(exc).split())[:300]})") from exc
-    if "scaler" in state:
-        scaler.load_state_dict(state["scaler"])
-    if ema is not None:
-        if "ema" not in state:
-            raise checkpoint.CheckpointMismatch(f"checkpoint {cfg.ckpt_path!r} holds no weight average: it was trained "
-                                                "without optim.ema_decay; resume without it or start a new run")
-        ema.load_state_dict(state["ema"])
-    if "train_bn" in state:  # bn_recalibrate_scope=eval: training goes on from its own statistics
-        precise_bn.restore(model, state["train_bn"])
-    opt.load_state_dict(state["optimizer"])
-    sched.load_state_dict(state["scheduler"])
-    start = int(state["epoch"])  # epochs completed = the 0-based index of the next one
-    # the schedule is a function of (epoch, epochs): re-derive it (epochs may have grown)
-    for g, base in zip(opt.param_groups, sched.base_lrs):
-        g["lr"] = base * group_factor(cfg, g["name"], start)
-    sched.last_epoch = start
-    if not world.enabled:
-        seeding.set_rng_state(state["rng"])
-    elif "rng_ranks" in state:
-        seeding.set_rng_state(state["rng_ranks"][world.rank])
-    else:  # a best.pt written at the end without the other ranks' streams: a fresh stream per rank
-        seeding.seed_everything(seeding.for_rank(cfg.seed + start, world.rank, world.size))
-    src_best = Path(cfg.ckpt_path).with_name("best.pt")
-    if (distributed.from_env().main and src_best.is_file()
-            and src_best.resolve() != (run_dir / "best.pt").resolve()):
-        shutil.copyfile(src_best, run_dir / "best.pt")
-    say(run_dir, f"resumed from {cfg.ckpt_path} at epoch {start + 1}/{cfg.epochs}")
-    distributed.barrier(world)  # rank 0 has copied best.pt beside the run
-    best_acc, best_epoch = float(state["best_val_acc"]), int(state["best_epoch"]) - 1
-    if not (run_dir / "best.pt").is_file():  # best.pt did not travel with last.pt: select anew
-        log.warning("no best.pt beside %s: model selection starts again from the resumed epoch", cfg.ckpt_path)
-        best_acc, best_epoch = -1.0, -1
-    return start, best_acc, best_epoch, int(state["skipped_steps"]), list(state["history"]), int(state.get("step", 0))
 
 
 def patience_spent(patience: int | None, epoch: int, best_epoch: int) -> bool:
@@ -349,54 +134,7 @@ def last_stage(cfg: TrainConfig, epoch: int) -> bool:
     return first + length == cfg.epochs
 
 
-def write_results(run_dir: Path, metrics: dict) -> Path:
-    """``metrics.json``, ``confusion.json`` and ``confusion.png`` in ``run_dir``; returns metrics.json's path."""
-    conf = {"classes": metrics["classes"], "rows": "true class", "columns": "predicted class",
-            "matrix": metrics["confusion_matrix"]}
-    (run_dir / "confusion.json").write_text(json.dumps(conf, indent=1))
-    confusion_png(metrics["confusion_matrix"], metrics["classes"], run_dir / "confusion.png",
-                  title=f"{metrics.get('split', 'test')}: acc {metrics['test_acc']:.3f}")
-    path = run_dir / "metrics.json"
-    path.write_text(json.dumps(metrics, indent=2))
-    run_dir_state.write_status(run_dir, "ok")
-    return path
-
-
 # ----------------------------------------------------------------------------- the loop
-def epoch_record(epoch: int, tr: dict, val: dict, val_ema, offsets: dict, detail: dict, lrs: dict, seconds: float,
-                 extra: dict) -> dict:
-    """One epoch's entry of ``history`` (metrics.json and the checkpoints)."""
-    return {"epoch": epoch + 1, "train_loss": tr["loss"], "train_acc": tr["acc"],
-            "val_acc": val["acc"], "val_mean_class_acc": val["mean_class_acc"], "val_loss": val["loss"],
-            "skipped": tr["skipped"], "clipped": tr["clipped"],
-            "grad_norm_selector": tr["grad_norm_selector"], "grad_norm_mvnet": tr["grad_norm_mvnet"],
-            **offsets, **detail, **lrs, "seconds": seconds,
-            **({"val_acc_ema": val_ema["acc"]} if val_ema is not None else {}), **extra}
-
-
-def log_epoch(logger: RunLogger, step: int, tr: dict, val: dict, offsets: dict, detail: dict) -> None:
-    """The epoch's scalars, view histograms and view grid in TensorBoard."""
-    logger.scalars({"train/loss_epoch": tr["loss"], "train/acc": tr["acc"], "val/acc": val["acc"],
-                    "val/mean_class_acc": val["mean_class_acc"], "val/loss": val["loss"],
-                    "views/offset_azim": offsets["view_offset_azim"], "views/offset_elev": offsets["view_offset_elev"],
-                    "views/spread": offsets["view_spread"],
-                    **({"views/separation": offsets["view_separation"]} if offsets["view_separation"] is not None else {}),
-                    **({"views/detail_seen": detail["val_detail_seen"]} if "val_detail_seen" in detail else {})}, step)
-    logger.histogram("views/azim", val["azim"], step)
-    logger.histogram("views/elev", val["elev"], step)
-    if val["images"] is not None:
-        logger.views("views/val", val["images"], step)
-
-
-def epoch_line(epoch: int, cfg: TrainConfig, tr: dict, val: dict, val_ema, improved: bool, use_ema: bool,
-               offsets: dict, detail: dict, seconds: float) -> str:
-    return (f"epoch {epoch + 1}/{cfg.epochs}: train loss {tr['loss']:.4f} acc {tr['acc']:.3f} | val acc {val['acc']:.3f}"
-            + (f" average {val_ema['acc']:.3f}" if val_ema is not None else "")
-            + f"{' (best' + (': the average)' if use_ema else ')') if improved else ''} | "
-            f"|u-u0| {offsets['view_offset_azim']:.1f}/{offsets['view_offset_elev']:.1f} deg | "
-            + (f"detail seen {detail['val_detail_seen']:.2f} | " if "val_detail_seen" in detail else "") + f"{seconds:.1f}s")
-
-
 def _device_name(device: torch.device) -> str:
     return f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""
 
@@ -438,18 +176,22 @@ def start_record(run_dir: Path, origin: dict, resumed: bool) -> None:
     (run_dir / "provenance.json").write_text(json.dumps(origin, indent=1))
 
 
-def test_best(model, cfg: TrainConfig, run_dir: Path, datasets: dict, classes: list, world, device, timer, costs_in):
-    """``best.pt`` on the test split (read once), with the run's cost record (``engine/cost.py``)."""
+def test_best(state: TrainState, cfg: TrainConfig, run_dir: Path, datasets: dict, device, timer: StepTimer,
+              train_memory) -> tuple[dict, dict, dict]:
+    """``best.pt`` on the test split (read once), with the run's cost record (``engine/cost.py``);
+    returns (best.pt's payload, the test results, the costs)."""
     best = checkpoint.load(run_dir / "best.pt", map_location=device)
-    model.load_state_dict(best["model"])
+    state.model.load_state_dict(best["model"])
     with cost.peak_memory(device) as infer_memory:
         t_test = time.perf_counter()
-        test = evaluate_split(model, datasets["test"], cfg, len(classes), "test", world)
+        test = evaluate_split(state.model, datasets["test"], cfg, len(state.classes), "test", state.world)
         infer_seconds = time.perf_counter() - t_test
     first = next(iter(eval_loader(cfg, datasets["test"])), None)
-    costs = cost.run_cost(model, cfg, infer_seconds=infer_seconds, infer_shapes=test["n"], infer_memory=infer_memory,
-                          render_seconds=timer.seconds["render"],
-                          flops=cost.flops_per_shape(model, first) if first is not None else {}, **costs_in)
+    costs = cost.run_cost(state.model, cfg, infer_seconds=infer_seconds, infer_shapes=test["n"],
+                          infer_memory=infer_memory, render_seconds=timer.seconds["render"],
+                          flops=cost.flops_per_shape(state.model, first) if first is not None else {},
+                          train_seconds=state.train_seconds, train_shapes=state.train_shapes,
+                          train_memory=train_memory)
     return best, test, costs
 
 
@@ -462,28 +204,6 @@ def validate(model, ema, dataset, cfg: TrainConfig, num_classes: int, world) -> 
     val = evaluate_split(model, dataset, cfg, num_classes, "val", world)
     val_ema = evaluate_split(ema.model, dataset, cfg, num_classes, "val (average)", world) if ema is not None else None
     return val, val_ema
-
-
-def run_metrics(cfg: TrainConfig, cfg_dict: dict, model, datasets: dict, test: dict, costs: dict, history: list,
-                timer: StepTimer, origin: dict, world, *, best_acc: float, best_epoch: int, step: int, skipped: int,
-                best_weights: str) -> dict:
-    """The run's ``metrics.json``: the test split's results for ``best.pt``, model selection, the
-    per-epoch history, time per stage, the cost record, the config and the provenance."""
-    classes = list(datasets["train"].classes)
-    seconds = [h["seconds"] for h in history]  # every epoch, resumed ones too
-    return {
-        "test_acc": test["acc"], "test_mean_class_acc": test["mean_class_acc"], "test_loss": test["loss"],
-        "test_per_class_acc": dict(zip(classes, test["per_class_acc"])),
-        "confusion_matrix": test["confusion"], "classes": classes, "test_size": test["n"], "split": "test",
-        "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "epochs": cfg.epochs, "epochs_trained": len(history),
-        "stopped_early": len(history) < cfg.epochs, "steps": step,
-        "best_weights": best_weights, "skipped_steps": skipped, "epoch_seconds": seconds,
-        "mean_epoch_seconds": sum(seconds) / max(len(seconds), 1), "train_wall_seconds": sum(seconds),
-        "step_seconds": timer.means(), "cost": costs,
-        **{f"test_{k}": v for k, v in view_report(model, test["azim"], test["elev"]).items()},
-        **{f"test_{k}": v for k, v in dataset_view_report(datasets["test"], test).items()},
-        "history": history, "config": cfg_dict, "provenance": origin, "world_size": world.size,
-    }
 
 
 def train(cfg, run_dir, build_model=None) -> dict:
@@ -502,123 +222,133 @@ def _train(cfg: TrainConfig, run_dir: Path, build_model) -> dict:
     world = distributed.from_env()  # torchrun: several processes, one run (runtime/distributed.py)
     device, origin = prepare_run(cfg, run_dir, world)
     cfg_dict = config_dict(cfg)
-    resume = None
-    if cfg.ckpt_path:
-        resume = checkpoint.load(cfg.ckpt_path)
-        checkpoint.check_compatible(resume["config"], cfg_dict, free=cfg.selector.free_keys())
-    else:
-        announce(cfg, device)  # (a resumed run's, once its checkpoint is accepted whole)
-
+    resume = accepted_checkpoint(cfg, cfg_dict, device)
     seeding.seed_everything(cfg.seed)
     datasets = make_datasets(cfg)
-    classes = list(datasets["train"].classes)
     if world.enabled:
         check_split_sizes(datasets, world)
+    state, g_training = build_state(cfg, run_dir, build_model, datasets, device, cfg_dict, origin, resume)
+    if world.main:
+        start_record(run_dir, origin, resumed=resume is not None)
+    logger = RunLogger(run_dir, cfg.logger if world.main else replace(cfg.logger, tensorboard=False))
+    timer = StepTimer(device)
+    try:
+        with cost.peak_memory(device) as train_memory:
+            fit(state, cfg, run_dir, datasets, g_training, logger, timer)
+        best, test, costs = test_best(state, cfg, run_dir, datasets, device, timer, train_memory)
+        logger.scalars({"test/acc": test["acc"], "test/mean_class_acc": test["mean_class_acc"],
+                        **{f"cost/{k}": v for k, v in costs.items() if isinstance(v, (int, float))}}, state.step)
+    finally:
+        logger.close()
+        loaders.release(*datasets.values())
+    metrics = run_metrics(cfg, cfg_dict, state.model, datasets, test, costs, state.history, timer, origin, world,
+                          best_acc=state.best_acc, best_epoch=state.best_epoch, step=state.step, skipped=state.skipped,
+                          best_weights="average" if best.get("ema_selected") else "raw")
+    if world.main:
+        view_figures(datasets["test"], test, run_dir)
+        write_results(run_dir, metrics)
+        say(run_dir, f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val "
+                     f"{state.best_acc:.4f} at epoch {state.best_epoch + 1})")
+    return metrics
+
+
+def accepted_checkpoint(cfg: TrainConfig, cfg_dict: dict, device) -> dict | None:
+    """The checkpoint a resumed run goes on from, checked to build the configured model (None for a
+    new run, whose first log lines are written now; a resumed run's once its checkpoint is accepted)."""
+    if not cfg.ckpt_path:
+        announce(cfg, device)
+        return None
+    resume = checkpoint.load(cfg.ckpt_path)
+    checkpoint.check_compatible(resume["config"], cfg_dict, free=cfg.selector.free_keys())
+    return resume
+
+
+def build_state(cfg: TrainConfig, run_dir: Path, build_model, datasets: dict, device, cfg_dict: dict, origin: dict,
+                resume: dict | None) -> tuple[TrainState, object]:
+    """The model, G's training, the optimizer, the loss scaler and the weight average in a
+    ``TrainState``, resumed from ``resume`` when given; returns it and G's training."""
+    world = distributed.from_env()
+    classes = list(datasets["train"].classes)
     model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
     if world.enabled and cfg.sync_bn:  # BatchNorm over the global batch (models/sync_bn.py)
         sync_bn.convert(model)
     g_training = cfg.selector.training()(cfg)  # how G trains (selectors/training.py)
     g_training.start(model, cfg_dict, resumed=resume is not None)
     opt, sched = make_optimizer(cfg, model, g_training)
-    scaler = grad_scaler(cfg.precision, device)
     ema = ModelEMA(model, cfg.optim.ema_decay) if cfg.optim.ema_decay is not None else None
-    loss_fn = classification.loss_fn(cfg.task)
-
+    state = TrainState(model, opt, sched, grad_scaler(cfg.precision, device), ema, world, cfg_dict, classes, origin)
     if world.enabled:  # from here on each process draws its own stream (augmentation, light, colour, points)
         seeding.seed_everything(seeding.for_rank(cfg.seed, world.rank, world.size))
-    start, best_acc, best_epoch, skipped, history, step = 0, -1.0, -1, 0, [], 0
-    train_seconds, train_shapes = 0.0, 0  # this process's training passes (engine/cost.py)
     if resume is not None:
-        start, best_acc, best_epoch, skipped, history, step = _resume(cfg, run_dir, model, opt, sched, resume, scaler,
-                                                                      ema, classes, world)
+        state.resume(resume, cfg.ckpt_path, run_dir, lambda name, epoch: group_factor(cfg, name, epoch), cfg.seed)
+        say(run_dir, f"resumed from {cfg.ckpt_path} at epoch {state.start + 1}/{cfg.epochs}")
         announce(cfg, device)
-    if world.main:
-        start_record(run_dir, origin, resumed=resume is not None)
+    return state, g_training
 
-    def payload(epoch, rngs=None):
-        """``rngs``: every process's RNG state in rank order (``distributed.gather``; this one's alone by default)."""
-        rngs = rngs or [seeding.rng_state()]
-        return {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                # epochs count from 1 as in metrics.json: "epoch" = epochs completed, "best_epoch" 1-based (0: none)
-                "format": checkpoint.FORMAT, "epoch": epoch + 1, "step": step, "rng": rngs[0],
-                "world_size": world.size, **({"rng_ranks": rngs} if world.enabled and len(rngs) == world.size else {}),
-                "config": cfg_dict, "best_val_acc": best_acc, "best_epoch": best_epoch + 1, "skipped_steps": skipped,
-                "history": history, "scaler": scaler.state_dict(), **({"ema": ema.state_dict()} if ema else {}),
-                "classes": classes, "provenance": origin}
 
-    logger = RunLogger(run_dir, cfg.logger if world.main else replace(cfg.logger, tensorboard=False))
-    timer = StepTimer(device)
-    try:
-        with cost.peak_memory(device) as train_memory:
-            for epoch in range(start, cfg.epochs):
-                t0 = time.perf_counter()
-                restart = cfg.mvnet.start_epoch(model.mvnet, epoch)  # ViewGCN: single views first, then the whole net
-                if restart:
-                    best_acc, best_epoch = -1.0, -1
-                    say(run_dir, restart)
-                elif patience_spent(cfg.patience, epoch, best_epoch) and last_stage(cfg, epoch):
-                    # (a resumed run that stopped stops again)
-                    say(run_dir, f"stopped after epoch {epoch}/{cfg.epochs}: validation accuracy has not improved for "
-                                 f"{epoch - 1 - best_epoch} epochs (patience={cfg.patience}; best {best_acc:.4f} at "
-                                 f"epoch {best_epoch + 1})")
-                    break
-                lrs = {f"lr_{g['name']}": g["lr"] for g in opt.param_groups}
-                tr, step = train_one_epoch(model, train_loader(cfg, datasets["train"], epoch, world), opt, cfg, epoch,
-                                           loss_fn, timer, logger, step, g_training, scaler=scaler, ema=ema, world=world)
-                train_seconds += time.perf_counter() - t0
-                if world.enabled:  # the epoch's sums over every rank's share
-                    tr = all_ranks_epoch(tr, world, model.device)
-                train_shapes += tr["seen"]
-                skipped += tr["skipped"]
-                for line in g_training.end_epoch(model, epoch):
-                    say(run_dir, line)
-                train_bn = g_training.before_validation(model, lambda: train_loader(cfg, datasets["train"], epoch, world))
-                val, val_ema = validate(model, ema, datasets["val"], cfg, len(classes), world)
-                sched.step()
-                seconds = time.perf_counter() - t0
-                offsets = view_report(model, val["azim"], val["elev"])
-                detail = {f"val_{k}": v for k, v in dataset_view_report(datasets["val"], val).items()}
-                history.append(epoch_record(epoch, tr, val, val_ema, offsets, detail, lrs, seconds,
-                                            g_training.history(model)))
-                log_epoch(logger, step, tr, val, offsets, detail)
-                use_ema = val_ema is not None and val_ema["acc"] > val["acc"]  # the average is the better model now
-                score = val_ema["acc"] if use_ema else val["acc"]
-                improved = score > best_acc
-                if improved:
-                    best_acc, best_epoch = score, epoch
-                rngs = distributed.gather(seeding.rng_state(), world)  # (every rank takes part)
-                state = {**payload(epoch, rngs), **({"train_bn": train_bn} if train_bn is not None else {})}
-                if improved and world.main:
-                    checkpoint.save_atomic(run_dir / "best.pt", {**state, "model": ema.state_dict(), "ema_selected": True}
-                                           if use_ema else state)
-                if world.main:
-                    checkpoint.save_atomic(run_dir / "last.pt", state)
-                g_training.after_validation(model, train_bn)
-                say(run_dir, epoch_line(epoch, cfg, tr, val, val_ema, improved, use_ema, offsets, detail, seconds))
+def fit(state: TrainState, cfg: TrainConfig, run_dir: Path, datasets: dict, g_training, logger: RunLogger,
+        timer: StepTimer) -> None:
+    """The epochs from ``state.start`` on (each trains, validates and checkpoints), then a
+    ``best.pt`` made sure of (a run resumed at its last epoch may have none)."""
+    for epoch in range(state.start, cfg.epochs):
+        if not begin_epoch(state, cfg, run_dir, epoch):
+            break
+        run_epoch(state, cfg, run_dir, epoch, datasets, g_training, logger, timer)
+    distributed.barrier(state.world)  # rank 0's files are written before anyone reads them
+    if not (run_dir / "best.pt").is_file():  # resumed at the last epoch without a best.pt
+        log.warning("no best.pt in %s: testing the last model", run_dir)
+        state.best_acc = state.history[-1]["val_acc"] if state.history else -1.0
+        state.best_epoch = state.start - 1
+        if state.world.main:
+            checkpoint.save_atomic(run_dir / "best.pt", state.payload(state.start - 1))
+        distributed.barrier(state.world)
 
-        distributed.barrier(world)  # rank 0's files are written before anyone reads them
-        if not (run_dir / "best.pt").is_file():  # resumed at the last epoch without a best.pt
-            log.warning("no best.pt in %s: testing the last model", run_dir)
-            best_acc, best_epoch = history[-1]["val_acc"] if history else -1.0, start - 1
-            if world.main:
-                checkpoint.save_atomic(run_dir / "best.pt", payload(start - 1))
-            distributed.barrier(world)
-        best, test, costs = test_best(model, cfg, run_dir, datasets, classes, world, device, timer,
-                                      dict(train_seconds=train_seconds, train_shapes=train_shapes,
-                                           train_memory=train_memory))
-        logger.scalars({"test/acc": test["acc"], "test/mean_class_acc": test["mean_class_acc"],
-                        **{f"cost/{k}": v for k, v in costs.items() if isinstance(v, (int, float))}}, step)
-    finally:
-        logger.close()
-        loaders.release(*datasets.values())
 
-    metrics = run_metrics(cfg, cfg_dict, model, datasets, test, costs, history, timer, origin, world,
-                          best_acc=best_acc, best_epoch=best_epoch, step=step, skipped=skipped,
-                          best_weights="average" if best.get("ema_selected") else "raw")
-    if not world.main:
-        return metrics
-    view_figures(datasets["test"], test, run_dir)
-    write_results(run_dir, metrics)
-    say(run_dir, f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val {best_acc:.4f} "
-          f"at epoch {best_epoch + 1})")
-    return metrics
+def begin_epoch(state: TrainState, cfg: TrainConfig, run_dir: Path, epoch: int) -> bool:
+    """Before 0-based ``epoch``: a new training stage of the multi-view net restarts model
+    selection (ViewGCN: single views first, then the whole net); False when patience is spent in
+    the last stage (a resumed run that stopped stops again)."""
+    restart = cfg.mvnet.start_epoch(state.model.mvnet, epoch)
+    if restart:
+        state.best_acc, state.best_epoch = -1.0, -1
+        say(run_dir, restart)
+        return True
+    if patience_spent(cfg.patience, epoch, state.best_epoch) and last_stage(cfg, epoch):
+        say(run_dir, f"stopped after epoch {epoch}/{cfg.epochs}: validation accuracy has not improved for "
+                     f"{epoch - 1 - state.best_epoch} epochs (patience={cfg.patience}; best {state.best_acc:.4f} at "
+                     f"epoch {state.best_epoch + 1})")
+        return False
+    return True
+
+
+def run_epoch(state: TrainState, cfg: TrainConfig, run_dir: Path, epoch: int, datasets: dict, g_training,
+              logger: RunLogger, timer: StepTimer) -> None:
+    """Train one epoch, let G's training decide, validate (raw weights and their average), step the
+    schedule, record the epoch and write the checkpoints."""
+    t0, world, model = time.perf_counter(), state.world, state.model
+    lrs = {f"lr_{g['name']}": g["lr"] for g in state.opt.param_groups}
+    batches = lambda: train_loader(cfg, datasets["train"], epoch, world)  # noqa: E731
+    tr, state.step = train_one_epoch(model, batches(), state.opt, cfg, epoch, classification.loss_fn(cfg.task), timer,
+                                     logger, state.step, g_training, scaler=state.scaler, ema=state.ema, world=world)
+    state.train_seconds += time.perf_counter() - t0
+    if world.enabled:  # the epoch's sums over every rank's share
+        tr = all_ranks_epoch(tr, world, model.device)
+    state.train_shapes += tr["seen"]
+    state.skipped += tr["skipped"]
+    for line in g_training.end_epoch(model, epoch):
+        say(run_dir, line)
+    train_bn = g_training.before_validation(model, batches)
+    val, val_ema = validate(model, state.ema, datasets["val"], cfg, len(state.classes), world)
+    state.sched.step()
+    seconds = time.perf_counter() - t0
+    offsets = view_report(model, val["azim"], val["elev"])
+    report = dataset_view_report(datasets["val"], val)
+    headline = view_headline(datasets["val"], report)
+    detail = {f"val_{k}": v for k, v in report.items()}
+    state.history.append(epoch_record(epoch, tr, val, val_ema, offsets, detail, lrs, seconds, g_training.history(model)))
+    log_epoch(logger, state.step, tr, val, offsets, headline)
+    use_ema = val_ema is not None and val_ema["acc"] > val["acc"]  # the average is the better model now
+    improved = state.improve(val_ema["acc"] if use_ema else val["acc"], epoch)
+    state.save(run_dir, epoch, improved, use_ema, train_bn)
+    g_training.after_validation(model, train_bn)
+    say(run_dir, epoch_line(epoch, cfg, tr, val, val_ema, improved, use_ema, offsets, headline, seconds))

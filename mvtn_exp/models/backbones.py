@@ -8,14 +8,17 @@
 
 Every model maps images ``[N, C, H, W] -> [N, num_classes]`` and exposes
 ``feature_dim`` plus ``features(x) -> [N, feature_dim]`` (the pooled vector before ``fc``).
-Weights are only ever read from local files; nothing is downloaded.
+Weights are only ever read from local files here (``pretrained.py`` fetches published ones).
+
+A backbone is one registered config class (``backbone=NAME``, ``BackboneConfig``): its ``network``
+(the constructor) and ``feature_dim``; ``build_backbone(name, ...)`` builds it by name.
 """
 from __future__ import annotations
 
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Callable, Optional, Union
+from typing import Callable, ClassVar, Optional, Union
 
 import torch
 from torch import Tensor, nn
@@ -267,40 +270,11 @@ def small_cnn(num_classes: int = 1000, weights: Optional[PathLike] = None, in_ch
     return load_weights(model, weights) if weights is not None else model
 
 
-def _vit(name: str) -> Callable[..., nn.Module]:
-    def build(num_classes: int = 1000, weights: Optional[PathLike] = None, in_channels: int = 3) -> nn.Module:
-        from . import vit
-
-        model = getattr(vit, name)(num_classes, in_channels=in_channels)
-        return load_weights(model, weights) if weights is not None else model
-
-    build.__doc__ = f"{name} (``models/vit.py``), optionally with a local timm-style weights file."
-    return build
-
-
-BACKBONES: dict[str, Callable[..., nn.Module]] = {
-    "resnet18": resnet18,
-    "resnet34": resnet34,
-    "resnet50": resnet50,
-    "small_cnn": small_cnn,
-    "vit_tiny": _vit("vit_tiny"),
-    "vit_small": _vit("vit_small"),
-    "vit_base": _vit("vit_base"),
-}
-
-
-# ``feature_dim`` of each registered backbone as built by ``build_backbone`` (checked in the tests),
-# for settings validated before anything is built
-FEATURE_DIMS = {"resnet18": 512, "resnet34": 512, "resnet50": 2048, "small_cnn": 256, "vit_tiny": 192, "vit_small": 384,
-                "vit_base": 768}
-
-
 def build_backbone(name: str, num_classes: int, weights: Optional[PathLike] = None,
                    in_channels: int = 3) -> _Backbone:
     """Build a registered backbone by name: ``[N, in_channels, H, W] -> [N, num_classes]``."""
-    if name not in BACKBONES:
-        raise ValueError(f"unknown backbone {name!r}; allowed: {', '.join(sorted(BACKBONES))}")
-    return BACKBONES[name](num_classes=num_classes, weights=weights, in_channels=in_channels)
+    cfg = OPTIONS["backbone"].lookup(name, "backbone")()
+    return cfg.build(num_classes, weights=weights, in_channels=in_channels)
 
 
 # ----------------------------------------------------------------------------- config options (backbone=NAME)
@@ -320,6 +294,10 @@ class BackboneConfig(OptionConfig):
     normalize: str = "auto"
 
     kind = "backbone"
+    # the constructor, (num_classes, in_channels=3) -> the backbone freshly initialised (a subclass
+    # sets it with staticmethod), and the width of its features(x) [N, feature_dim] (checked by a test)
+    network: ClassVar[Callable[..., nn.Module]]
+    feature_dim: ClassVar[int]
 
     def validate(self) -> "BackboneConfig":
         super().validate()
@@ -334,31 +312,49 @@ class BackboneConfig(OptionConfig):
             return "imagenet" if self.weights is not None else "none"
         return self.normalize
 
-    @property
-    def feature_dim(self) -> int:
-        """Width of the backbone's per-view feature."""
-        return FEATURE_DIMS[self.name]
+    def build(self, num_classes: int, weights: Optional[PathLike] = None, in_channels: int = 3) -> nn.Module:
+        """The backbone ``[N, in_channels, H, W] -> [N, num_classes]`` with ``features(x) -> [N,
+        feature_dim]``; ``weights``: a local state_dict file loaded into it (``load_weights``; the
+        file ``pretrained.resolve`` gives for ``self.weights``), None: fresh initialisation."""
+        model = type(self).network(num_classes, in_channels=in_channels)
+        return load_weights(model, weights) if weights is not None else model
 
 
 @register("resnet18")
 @dataclass
 class ResNet18Config(BackboneConfig):
+    """ResNet-18 (torchvision's keys and init): 512-d features."""
+
     name: str = "resnet18"
+    network = staticmethod(resnet18)
+    feature_dim = 512
 
 
 @register("resnet34")
 @dataclass
 class ResNet34Config(BackboneConfig):
+    """ResNet-34 (torchvision's keys and init): 512-d features."""
+
     name: str = "resnet34"
+    network = staticmethod(resnet34)
+    feature_dim = 512
 
 
 @register("resnet50")
 @dataclass
 class ResNet50Config(BackboneConfig):
+    """ResNet-50 (torchvision's keys and init, bottleneck blocks): 2048-d features."""
+
     name: str = "resnet50"
+    network = staticmethod(resnet50)
+    feature_dim = 2048
 
 
 @register("small_cnn")
 @dataclass
 class SmallCNNConfig(BackboneConfig):
+    """SmallCNN, the fast CPU backbone for tests and quick runs (four conv stages, width 32): 256-d features."""
+
     name: str = "small_cnn"
+    network = staticmethod(small_cnn)
+    feature_dim = 256

@@ -109,6 +109,7 @@ class DGCNNConfig(PointEncoderConfig):
     ``head_widths`` (the original ``[512, 256]``; ``[]``: one linear layer) with ``dropout``."""
 
     name: str = "dgcnn"
+    network = DGCNN
     k: int = 20
     emb_dims: int = 1024
     head_widths: list[int] = field(default_factory=lambda: [512, 256])

@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING, Optional, Union
 import torch
 from torch import Tensor, nn
 
-from ..config.checks import at_least, one_of
+from ..config.checks import at_least
 from .backbones import PathLike
-from .multiview import POOLS, MVCNN, MVCNNConfig, register, views_move_with_c
+from .multiview import MVCNN, MVCNNConfig, register, views_move_with_c
 from .point_encoders import build_point_encoder
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -77,10 +77,10 @@ class LateFusionConfig(MVCNNConfig):
     name: str = "late_fusion"
     pool: str = "max"
     num_points: Optional[int] = None
+    network = PointLateFusion
 
     def validate(self) -> "LateFusionConfig":
         super().validate()
-        one_of("mvnet.pool", self.pool, POOLS)
         if self.num_points is not None:
             at_least("mvnet.num_points", self.num_points, 1)
         return self
@@ -99,8 +99,3 @@ class LateFusionConfig(MVCNNConfig):
 
     def kwargs(self) -> dict:
         return {**super().kwargs(), "num_points": self.num_points}
-
-    def point_kwargs(self, point_encoder) -> dict:
-        if point_encoder is None:
-            return {}
-        return {"point_encoder": point_encoder.name, "point_encoder_kwargs": point_encoder.kwargs()}

@@ -6,11 +6,14 @@ is detached, so gradients reach the images and, through the renderer, the camera
 
 The backbone's own ``fc`` is never called (only ``backbone.features``); the classifier is
 ``self.head``. Its ``fc`` parameters therefore get no gradient (DDP: ``find_unused_parameters``).
+
+A network is one registered config class (``mvnet=NAME``, ``MVNetConfig``) whose ``network`` is its
+constructor; ``build_multiview(name, ...)`` builds it by name.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Optional, Union
+from typing import TYPE_CHECKING, Callable, ClassVar, Optional, Union
 
 import torch
 from torch import Tensor, nn
@@ -130,38 +133,15 @@ class LogitMean(MVCNN):
         return logits, feats.mean(dim=1)
 
 
-def _view_transformer(*args, **kw) -> MVCNN:
-    from .view_transformer import ViewTransformer  # it subclasses MVCNN
-
-    return ViewTransformer(*args, **kw)
-
-
-def _viewgcn(*args, **kw) -> MVCNN:
-    from .viewgcn import ViewGCN  # it subclasses MVCNN
-
-    return ViewGCN(*args, **kw)
-
-
-def _late_fusion(*args, **kw) -> MVCNN:
-    from .late_fusion import PointLateFusion  # it subclasses MVCNN
-
-    return PointLateFusion(*args, **kw)
-
-
-MULTIVIEW: dict[str, Callable[..., MVCNN]] = {"mvcnn": MVCNN, "logit_mean": LogitMean, "late_fusion": _late_fusion,
-                                              "view_transformer": _view_transformer, "viewgcn": _viewgcn}
-
-
-def build_multiview(name: str, backbone: Union[nn.Module, str], num_classes: int, **kw) -> MVCNN:
+def build_multiview(name: str, backbone: Union[nn.Module, str], num_classes: int, **kw) -> nn.Module:
     """Build a registered multi-view network: ``[B, M, 3, H, W] -> (logits [B, K], features [B, D])``.
 
-    ``kw`` goes to the constructor (``weights``, ``pool``, ``dropout``; ``view_transformer`` also
-    takes ``blocks``, ``heads``, ``width``, ``mlp_ratio``; ``viewgcn`` takes ``k``; ``late_fusion``
-    takes ``point_encoder``, ``point_encoder_kwargs``, ``num_points``).
+    ``kw`` goes to the constructor (the option's ``network``: ``weights``, ``pool``, ``dropout``;
+    ``view_transformer`` also takes ``blocks``, ``heads``, ``width``, ``mlp_ratio``; ``viewgcn`` takes
+    ``k``; ``late_fusion`` and ``point_classifier`` take ``point_encoder``, ``point_encoder_kwargs``,
+    ``num_points``).
     """
-    if name not in MULTIVIEW:
-        raise ValueError(f"unknown multi-view network {name!r}; allowed: {', '.join(sorted(MULTIVIEW))}")
-    return MULTIVIEW[name](backbone, num_classes, **kw)
+    return OPTIONS["mvnet"].lookup(name, "multi-view network").network(backbone, num_classes, **kw)
 
 
 # ----------------------------------------------------------------------------- config options (mvnet=NAME)
@@ -178,6 +158,8 @@ class MVNetConfig(OptionConfig):
 
     kind = "mvnet"
     any_view_set = True  # C takes any set of views as one shape (raced hypotheses can be pooled)
+    # the constructor: (backbone name or module, num_classes, weights=, **kwargs(), **point_kwargs()) -> C
+    network: ClassVar[Callable[..., nn.Module]]
 
     def validate(self) -> "MVNetConfig":
         super().validate()
@@ -189,15 +171,18 @@ class MVNetConfig(OptionConfig):
         return {"dropout": self.dropout}
 
     def point_kwargs(self, point_encoder) -> dict:
-        """Constructor arguments from the run's point encoder option (none: C reads no points)."""
-        return {}
+        """Constructor arguments from the run's point encoder option, for a C that reads the shape's
+        points (its network's ``reads_points``); none for the others or without an option."""
+        if point_encoder is None or not getattr(type(self).network, "reads_points", False):
+            return {}
+        return {"point_encoder": point_encoder.name, "point_encoder_kwargs": point_encoder.kwargs()}
 
     def build(self, backbone: str, num_classes: int, weights: Optional[str] = None,
-              input_norm: str = "none", point_encoder=None) -> MVCNN:
-        """The net; ``input_norm="imagenet"`` scales its input by ImageNet's mean and std;
+              input_norm: str = "none", point_encoder=None) -> nn.Module:
+        """The net (``network``); ``input_norm="imagenet"`` scales its input by ImageNet's mean and std;
         ``point_encoder`` (the run's ``point_encoder`` option) serves a net that reads points."""
-        net = build_multiview(self.name, backbone, num_classes, weights=weights, **self.kwargs(),
-                              **self.point_kwargs(point_encoder))
+        net = type(self).network(backbone, num_classes, weights=weights, **self.kwargs(),
+                                 **self.point_kwargs(point_encoder))
         return net.normalize_input(IMAGENET_MEAN, IMAGENET_STD) if input_norm == "imagenet" else net
 
     def stage_span(self, epoch: int, epochs: int) -> tuple[int, int]:
@@ -229,6 +214,7 @@ class MVCNNConfig(MVNetConfig):
 
     name: str = "mvcnn"
     pool: str = "max"
+    network = MVCNN
 
     def validate(self) -> "MVCNNConfig":
         super().validate()
@@ -246,6 +232,7 @@ class LogitMeanConfig(MVCNNConfig):
 
     name: str = "logit_mean"
     pool: str = "mean"
+    network = LogitMean
 
     def validate(self) -> "LogitMeanConfig":
         super().validate()

@@ -65,6 +65,7 @@ class PointClassifierConfig(MVNetConfig):
 
     name: str = "point_classifier"
     num_points: Optional[int] = None
+    network = PointClassifier
 
     def validate(self) -> "PointClassifierConfig":
         super().validate()
@@ -83,10 +84,5 @@ class PointClassifierConfig(MVNetConfig):
         if self.num_points is not None:
             cfg.point_encoder.check_points(self.num_points, f"mvnet.num_points={self.num_points}")
 
-    def build(self, backbone: str, num_classes: int, weights: Optional[str] = None, input_norm: str = "none",
-              point_encoder=None) -> PointClassifier:
-        """The classifier on ``point_encoder`` (the run's option; None: the paper's PointNet); not an
-        image network, so not in ``multiview.MULTIVIEW``."""
-        kw = {} if point_encoder is None else {"point_encoder": point_encoder.name,
-                                               "point_encoder_kwargs": point_encoder.kwargs()}
-        return PointClassifier(None, num_classes, weights=weights, num_points=self.num_points, **kw)
+    def kwargs(self) -> dict:
+        return {"num_points": self.num_points}

@@ -6,14 +6,16 @@
 * ``PaperPointNet`` (``point_encoder=pointnet_paper``): the PointNet classifier the paper's G uses,
   with the input and feature T-nets and the 1024-512-256 head (3.47 M parameters at b = 40).
 * ``sample_points(shapes, n)``: a ``PointClouds`` / ``Meshes`` batch -> dense ``[B, n, 3]``.
-* ``POINT_ENCODERS`` / ``build_point_encoder``: the registry (``dgcnn``: ``dgcnn.py``).
+* ``build_point_encoder(name, ...)``: an encoder by name; each is one registered config class
+  (``point_encoder=NAME``, ``PointEncoderConfig``) whose ``network`` is its constructor (``dgcnn``:
+  ``dgcnn.py``).
 
 Every encoder maps points ``[B, N, 3] -> [B, out_features]`` and exposes ``out_features``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence, Union
+from typing import Callable, ClassVar, Optional, Sequence, Union
 
 import torch
 from torch import Tensor, nn
@@ -189,32 +191,10 @@ class PaperPointNet(nn.Module):
         return self.fc3(torch.relu(self.bn2(self.drop(self.fc2(x)))))
 
 
-def pointnet(out_features: int = 40, **kw) -> PointNet:
-    return PointNet(out_features=out_features, **kw)
-
-
-def dgcnn(out_features: int = 40, **kw) -> nn.Module:
-    from .dgcnn import DGCNN
-
-    return DGCNN(out_features=out_features, **kw)
-
-
-def pointnet_paper(out_features: int = 40, **kw) -> PaperPointNet:
-    return PaperPointNet(out_features=out_features, **kw)
-
-
-POINT_ENCODERS: dict[str, Callable[..., nn.Module]] = {
-    "pointnet": pointnet,
-    "pointnet_paper": pointnet_paper,
-    "dgcnn": dgcnn,
-}
-
-
 def build_point_encoder(name: str, out_features: int = 40, **kw) -> nn.Module:
-    """Build a registered point encoder: ``[B, N, 3] -> [B, out_features]``."""
-    if name not in POINT_ENCODERS:
-        raise ValueError(f"unknown point encoder {name!r}; allowed: {', '.join(sorted(POINT_ENCODERS))}")
-    return POINT_ENCODERS[name](out_features=out_features, **kw)
+    """Build a registered point encoder: ``[B, N, 3] -> [B, out_features]``; ``kw``: its constructor's
+    own arguments (the option's ``network``; the config's ``kwargs()``)."""
+    return OPTIONS["point_encoder"].lookup(name, "point encoder").network(out_features=out_features, **kw)
 
 
 # ----------------------------------------------------------------------------- config options (point_encoder=NAME)
@@ -228,6 +208,7 @@ class PointEncoderConfig(OptionConfig):
     features: int = 40
 
     kind = "point_encoder"
+    network: ClassVar[Callable[..., nn.Module]]  # the constructor: (out_features, **kwargs()) -> encoder
 
     def validate(self) -> "PointEncoderConfig":
         super().validate()
@@ -238,6 +219,11 @@ class PointEncoderConfig(OptionConfig):
         """The encoder's own constructor arguments (beyond ``out_features``)."""
         return {}
 
+    def build(self, out_features: Optional[int] = None) -> nn.Module:
+        """The encoder ``[B, N, 3] -> [B, out_features]`` (None: ``features``) with this config's keys."""
+        size = self.features if out_features is None else out_features
+        return type(self).network(out_features=size, **self.kwargs())
+
     def check_points(self, n: int, where: str) -> None:
         """One line if the encoder cannot read ``n`` points per shape (``where``: the keys that set n)."""
 
@@ -245,10 +231,12 @@ class PointEncoderConfig(OptionConfig):
 @register("pointnet")
 @dataclass
 class PointNetConfig(PointEncoderConfig):
-    """PointNet; ``use_tnet``: the input transform."""
+    """PointNet, this project's compact encoder (a linear projection of the pooled 1024-d feature,
+    ~0.18 M parameters); ``use_tnet``: the input transform."""
 
     name: str = "pointnet"
     use_tnet: bool = False
+    network = PointNet
 
     def kwargs(self) -> dict:
         return {"use_tnet": self.use_tnet}
@@ -262,6 +250,7 @@ class PaperPointNetConfig(PointEncoderConfig):
 
     name: str = "pointnet_paper"
     dropout: float = 0.3
+    network = PaperPointNet
 
     def validate(self) -> "PaperPointNetConfig":
         super().validate()

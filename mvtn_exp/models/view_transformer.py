@@ -89,14 +89,16 @@ def check_view_transformer(blocks: int, heads: int, width: int) -> None:
 @register("view_transformer")
 @dataclass
 class ViewTransformerConfig(MVCNNConfig):
-    """``blocks`` self-attention blocks with ``heads`` heads over the view features as a set, tokens
-    ``width`` wide (null: the backbone's feature size), MLP ``mlp_ratio`` x wide, then ``pool``."""
+    """View transformer: self-attention over the view features as a set, then ``pool``. ``blocks``
+    blocks with ``heads`` heads, tokens ``width`` wide (null: the backbone's feature size), MLP
+    ``mlp_ratio`` x wide."""
 
     name: str = "view_transformer"
     blocks: int = 2
     heads: int = 4
     width: Optional[int] = None
     mlp_ratio: float = 2.0
+    network = ViewTransformer
 
     def validate(self) -> "ViewTransformerConfig":
         super().validate()

@@ -270,6 +270,7 @@ class ViewGCNConfig(MVNetConfig):
     fps_start: str = "random"
     level_views: Optional[list[int]] = None
     stages: Optional[list[int]] = None
+    network = ViewGCN
 
     def validate(self) -> "ViewGCNConfig":
         super().validate()

@@ -156,16 +156,28 @@ class ViTConfig(BackboneConfig):
 @register("vit_tiny")
 @dataclass
 class ViTTinyConfig(ViTConfig):
+    """ViT-Tiny/16 (timm's keys): 192-d features."""
+
     name: str = "vit_tiny"
+    network = staticmethod(vit_tiny)
+    feature_dim = 192
 
 
 @register("vit_small")
 @dataclass
 class ViTSmallConfig(ViTConfig):
+    """ViT-Small/16 (timm's keys): 384-d features."""
+
     name: str = "vit_small"
+    network = staticmethod(vit_small)
+    feature_dim = 384
 
 
 @register("vit_base")
 @dataclass
 class ViTBaseConfig(ViTConfig):
+    """ViT-Base/16 (timm's keys; MAE's and DINO's ViT-B/16 files load into it): 768-d features."""
+
     name: str = "vit_base"
+    network = staticmethod(vit_base)
+    feature_dim = 768

@@ -1,7 +1,7 @@
 """Paired comparisons over seeds: the numbers behind every "A beats B" of the project (``mvtn-compare``).
 
-Reads every run below the given folders (a run dir: ``metrics.json`` when it finished,
-``status.json`` when it failed, else only its ``.hydra/config.yaml``), sorts the finished runs into
+Reads every run below the given folders (``runs/folders.py``: a finished run's recorded config,
+an unfinished one's outcome and Hydra's config), sorts the finished runs into
 *sides* (one configuration each, runs differing only in ``seed``) and compares every side with the
 reference side (the first) on the seeds both have:
 
@@ -40,83 +40,14 @@ from pathlib import Path
 import yaml
 from scipy import stats
 
-from ..engine.provenance import machine
-from .sweep import STATUS_FILE
-
+from .folders import METRICS_FILE, Run, find_runs, flatten  # noqa: F401 (find_runs re-exported: runs/folders.py reads runs)
 from .settings import RUN_LOCAL, is_local  # noqa: F401 (RUN_LOCAL re-exported)
+
 PROTECTED = ("dataset", "epochs", "patience")  # data, its splits and the training length
 
 
 class CompareError(ValueError):
     """A comparison that cannot be made as asked (mismatched sides, too few seeds, nothing to read)."""
-
-
-@dataclass
-class Run:
-    """One run dir: ``status`` ok | failed | incomplete; ``settings``: its config, flattened to
-    dotted keys, without ``RUN_LOCAL`` keys (None when no config could be read)."""
-
-    path: Path
-    status: str
-    seed: int | None = None
-    settings: dict | None = None
-    metrics: dict = field(default_factory=dict)
-    commit: str | None = None
-    error: str = ""
-    machine: str | None = None  # the hardware behind its float rounding (None: not recorded)
-    filled: list = field(default_factory=list)  # keys its record lacked, read as today's defaults
-
-
-def flatten(node, prefix: str = "") -> dict:
-    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (lists stay values)."""
-    out = {}
-    for k, v in node.items():
-        key = f"{prefix}.{k}" if prefix else str(k)
-        out.update(flatten(v, key) if isinstance(v, dict) and v else {key: v})
-    return out
-
-
-def _read_run(path: Path) -> Run:
-    """The record of one run dir."""
-    metrics_file, status_file = path / "metrics.json", path / STATUS_FILE
-    config, metrics, status, error = None, {}, "incomplete", ""
-    try:
-        if metrics_file.is_file():
-            metrics = json.loads(metrics_file.read_text())
-            config, status = metrics.get("config"), "ok"
-        else:
-            if status_file.is_file():
-                st = json.loads(status_file.read_text())
-                status, error = str(st.get("status", "failed")), str(st.get("error", ""))
-                status = "incomplete" if status == "ok" else status  # ok, but its metrics.json is gone
-            hydra_cfg = path / ".hydra" / "config.yaml"
-            if hydra_cfg.is_file():
-                config = yaml.safe_load(hydra_cfg.read_text())
-    except (OSError, ValueError, yaml.YAMLError) as exc:
-        return Run(path, "unreadable", error=str(exc))
-    if not isinstance(config, dict):
-        return Run(path, status if status != "ok" else "unreadable", error=error or "no config in its record")
-    flat = flatten(config)
-    prov = metrics.get("provenance") or {}
-    commit = (prov["commit"][:7] + ("+dirty" if prov.get("dirty") else "")) if prov.get("commit") else None
-    return Run(path, status, seed=flat.get("seed"), settings={k: v for k, v in flat.items() if not is_local(k)},
-               metrics=metrics, commit=commit, error=error, machine=machine(prov))
-
-
-def find_runs(folders) -> list[Run]:
-    """Every run dir at or below ``folders`` (in the order given, paths sorted within each)."""
-    runs, seen = [], set()
-    for folder in folders:
-        folder = Path(folder)
-        if not folder.is_dir():
-            raise CompareError(f"{folder}: no such folder")
-        marks = [p.parent for name in ("metrics.json", STATUS_FILE) for p in folder.rglob(name)]
-        marks += [p.parent for p in folder.rglob(".hydra") if p.is_dir()]
-        for path in sorted(set(marks)):
-            if path.resolve() not in seen and ".hydra" not in path.parts:
-                seen.add(path.resolve())
-                runs.append(_read_run(path))
-    return runs
 
 
 _DEFAULTS: dict = {}
@@ -361,7 +292,7 @@ def _value(run: Run, metric: str) -> float:
     if v is None and metric in DERIVED:
         v = DERIVED[metric](run.metrics)
     if not isinstance(v, (int, float)) or isinstance(v, bool):
-        raise CompareError(f"{run.path / 'metrics.json'}: no number under {metric!r} "
+        raise CompareError(f"{run.path / METRICS_FILE}: no number under {metric!r} "
                            f"(numbers there: {', '.join(k for k, x in run.metrics.items() if isinstance(x, (int, float)))})")
     return float(v)
 

@@ -26,7 +26,8 @@ import yaml
 
 from scipy import stats
 
-from .compare import CompareError, Run, _matches, mean_sd
+from .compare import CompareError, _matches, mean_sd
+from .folders import Run
 
 ANY = "<set>"  # a ``where`` value: the key holds any value but null
 PAPER_RUNS = 4  # the paper's headline cells are the best of four runs; the supplement gives their mean +- std

@@ -29,6 +29,7 @@ from ..config.schema import resolve_device
 from ..tasks import classification
 from ..runtime import checkpoint
 from ..engine.provenance import provenance
+from .folders import METRICS_FILE, read_metrics
 
 RETIMED = "retimed.json"
 
@@ -48,7 +49,7 @@ def retime_job(job_dir, passes: int = 3) -> dict:
     path = job_dir / "best.pt"
     if not path.is_file():
         raise RetimeError(f"{path}: not found; re-timing needs the run's best checkpoint")
-    recorded = json.loads((job_dir / "metrics.json").read_text())
+    recorded = read_metrics(job_dir)
     state = checkpoint.load(path, map_location="cpu")
     cfg = config_from_checkpoint(state, path)
     cfg.device = resolve_device(cfg.device)
@@ -74,7 +75,7 @@ def retime_job(job_dir, passes: int = 3) -> dict:
         torch.set_num_threads(threads)
     if abs(acc - float(recorded["test_acc"])) > 1e-9:
         raise RetimeError(f"{job_dir}: the re-timed test pass reached accuracy {acc:.4f}, the run recorded "
-                          f"{float(recorded['test_acc']):.4f}; its checkpoint and metrics.json disagree")
+                          f"{float(recorded['test_acc']):.4f}; its checkpoint and {METRICS_FILE} disagree")
     (job_dir / RETIMED).write_text(json.dumps(out, indent=1))
     return out
 

@@ -3,49 +3,33 @@
 from __future__ import annotations
 
 import csv
-import json
 import math
-import re
 import sys
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-from ..engine.run_dir import STATUS_FILE  # status.json: a run's last outcome
+from .folders import STATUS_FILE, Run, sweep_jobs  # noqa: F401 (STATUS_FILE re-exported)
 from .settings import is_local
 
 COLUMNS = ("test_acc", "test_mean_class_acc", "best_val_acc", "mean_epoch_seconds", "test_view_offset_azim",
            "test_view_offset_elev", "test_view_spread", "test_view_separation")
 
 
-def _overrides(job_dir: Path) -> list[str]:
-    path = job_dir / ".hydra" / "overrides.yaml"
-    if path.is_file():
-        import yaml
-
-        return [str(o) for o in (yaml.safe_load(path.read_text()) or [])]
-    return [job_dir.name]
+def job_row(run: Run) -> dict:
+    """A job's row: ``job`` (its folder's name), ``overrides``, ``status``, then its ``COLUMNS``
+    metrics when it finished, or its ``error`` when one is recorded."""
+    row = {"job": run.job, "overrides": run.overrides, "status": run.status}
+    if run.status == "ok":
+        row.update({k: run.metrics.get(k) for k in COLUMNS})
+    elif run.error:
+        row["error"] = run.error
+    return row
 
 
 def collect(sweep_dir) -> list[dict]:
-    """One row per job folder under ``sweep_dir``: its overrides, status and metrics."""
-    rows = []
-    jobs = [p for p in Path(sweep_dir).iterdir() if p.is_dir() and not p.name.startswith(".")]
-    for job in sorted(jobs, key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]):
-        if not (job / ".hydra").is_dir():
-            continue
-        row = {"job": job.name, "overrides": _overrides(job)}
-        if (job / "metrics.json").is_file():
-            m = json.loads((job / "metrics.json").read_text())
-            row.update(status="ok", **{k: m.get(k) for k in COLUMNS})
-        elif (job / STATUS_FILE).is_file():
-            row.update(json.loads((job / STATUS_FILE).read_text()))
-            if row.get("status") == "ok":  # ok once, but its metrics.json is gone (say, resumed and cut short)
-                row["status"] = "incomplete"
-        else:
-            row["status"] = "incomplete"
-        rows.append(row)
-    return rows
+    """One row per job of the sweep in ``sweep_dir`` (``folders.sweep_jobs``: natural order), ``job_row``."""
+    return [job_row(run) for run in sweep_jobs(sweep_dir)]
 
 
 def _setting(overrides: list[str]) -> str:

@@ -1,7 +1,7 @@
 """The speed/accuracy trade of a sweep: one row per setting, its Pareto front, and which keys matter.
 
-``mvtn-tradeoff DIR`` reads a sweep folder (``mvtn-train -m ...``: one job folder per run, each with
-``.hydra/overrides.yaml`` and ``metrics.json``) and writes into it:
+``mvtn-tradeoff DIR`` reads a sweep folder (``mvtn-train -m ...``: one job folder per run, read by
+``runs/folders.py``: its overrides, its metrics and cost when it finished) and writes into it:
 
 - ``tradeoff_jobs.csv``: one row per job (its swept keys, status, test accuracy and cost);
 - ``tradeoff.csv``: one row per setting (the jobs that differ only in ``seed``): the swept keys,
@@ -29,7 +29,8 @@ import math
 from pathlib import Path
 
 from .compare import mean_sd
-from .sweep import _override_values, _setting, collect, failed_jobs
+from .folders import METRICS_FILE, Run, finished_at, started_at, sweep_jobs
+from .sweep import _override_values, _setting, failed_jobs, job_row
 
 COST_FIELDS = ("infer_ms_per_shape", "train_seconds_per_shape", "train_peak_mib", "infer_peak_mib",
                "params_selector", "params_mvnet", "flops_selector_per_shape", "flops_mvnet_per_shape",
@@ -44,28 +45,15 @@ class TradeoffError(ValueError):
 def job_rows(sweep_dir, retimed: bool = False, seed: int | None = None) -> list[dict]:
     """Every job of the sweep with its status; finished ones carry ``test_acc``, ``dataset`` and the cost.
     ``retimed``: ``infer_ms_per_shape`` from each finished job's ``retimed.json`` (``runs/retime.py``),
-    the run's own timing kept as ``infer_ms_in_run``. ``seed``: only the jobs of that run seed (its
-    composed config's ``seed``), e.g. a grid's seed-0 runs against a search's one run per setting."""
+    the run's own timing kept as ``infer_ms_in_run``. ``seed``: only the jobs of that run seed
+    (``job_seed``), e.g. a grid's seed-0 runs against a search's one run per setting."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise TradeoffError(f"{sweep_dir}: not a folder")
-    rows = collect(sweep_dir)
+    jobs = sweep_jobs(sweep_dir)
     if seed is not None:
-        rows = [r for r in rows if _job_seed(sweep_dir / r["job"], r["overrides"]) == seed]
-    for r in rows:
-        if r.get("status") != "ok":
-            continue
-        m = json.loads((sweep_dir / r["job"] / "metrics.json").read_text())
-        r["dataset"] = ((m.get("config") or {}).get("dataset") or {}).get("name")
-        missing = [k for k in COST_FIELDS if k not in (m.get("cost") or {})]
-        if missing:
-            raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no cost fields {missing[:3]}"
-                                f"{'...' if len(missing) > 3 else ''} (an older run wrote none; re-run the job)")
-        r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"], best_val_acc=m.get("best_val_acc"),
-                 train_wall_seconds=m.get("train_wall_seconds"))
-        if retimed:
-            r["infer_ms_in_run"] = r["infer_ms_per_shape"]
-            r["infer_ms_per_shape"] = _retimed_ms(sweep_dir / r["job"])
+        jobs = [j for j in jobs if job_seed(j) == seed]
+    rows = [_cost_row(j, retimed) for j in jobs]
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
         raise TradeoffError(f"{sweep_dir}: no finished job (a job folder with metrics.json) among {len(rows)}"
@@ -78,15 +66,28 @@ def job_rows(sweep_dir, retimed: bool = False, seed: int | None = None) -> list[
     return rows
 
 
-def _job_seed(job_dir: Path, overrides: list[str]):
-    """The run seed of a job: its ``seed=N`` override, else its composed config's ``seed``."""
-    import yaml
+def _cost_row(job: Run, retimed: bool) -> dict:
+    """``sweep.job_row``, and for a finished job its dataset, test and validation accuracy and cost."""
+    r, m = job_row(job), job.metrics
+    if r["status"] != "ok":
+        return r
+    r["dataset"] = ((m.get("config") or {}).get("dataset") or {}).get("name")
+    missing = [k for k in COST_FIELDS if k not in (m.get("cost") or {})]
+    if missing:
+        raise TradeoffError(f"{job.path / METRICS_FILE}: no cost fields {missing[:3]}"
+                            f"{'...' if len(missing) > 3 else ''} (an older run wrote none; re-run the job)")
+    r.update({k: m["cost"][k] for k in COST_FIELDS}, test_acc=m["test_acc"], best_val_acc=m.get("best_val_acc"),
+             train_wall_seconds=m.get("train_wall_seconds"))
+    if retimed:
+        r["infer_ms_in_run"] = r["infer_ms_per_shape"]
+        r["infer_ms_per_shape"] = _retimed_ms(job.path)
+    return r
 
-    given = _override_values(overrides).get("seed")
-    if given is not None:
-        return int(given)
-    path = job_dir / ".hydra" / "config.yaml"
-    return (yaml.safe_load(path.read_text()) or {}).get("seed") if path.is_file() else None
+
+def job_seed(job: Run):
+    """The run seed of a job: its ``seed=N`` override, else its config's ``seed``."""
+    given = _override_values(job.overrides).get("seed")
+    return int(given) if given is not None else job.seed
 
 
 def output_name(name: str, seed: int | None) -> str:
@@ -206,7 +207,7 @@ def _metric_rows(sweep_dir: Path, metric: str, retimed: bool = False, seed: int 
     rows = job_rows(sweep_dir, retimed, seed)
     for r in rows:
         if r.get("status") == "ok" and r.get(metric) is None:
-            raise TradeoffError(f"{sweep_dir / r['job'] / 'metrics.json'}: no {metric}")
+            raise TradeoffError(f"{sweep_dir / r['job'] / METRICS_FILE}: no {metric}")
     return rows
 
 
@@ -278,10 +279,9 @@ def hypervolume(points: list[tuple[float, float]], ref: tuple[float, float]) -> 
 
 
 def _elapsed_s(sweep_dir: Path, rows: list[dict]) -> float:
-    """From the first job's start (its ``.hydra/config.yaml``) to the last result (``metrics.json``)."""
-    starts = [(sweep_dir / r["job"] / ".hydra" / "config.yaml").stat().st_mtime for r in rows
-              if (sweep_dir / r["job"] / ".hydra" / "config.yaml").is_file()]
-    ends = [(sweep_dir / r["job"] / "metrics.json").stat().st_mtime for r in rows if r.get("status") == "ok"]
+    """From the first job's start (``folders.started_at``) to the last result (``folders.finished_at``)."""
+    starts = [t for t in (started_at(sweep_dir / r["job"]) for r in rows) if t is not None]
+    ends = [finished_at(sweep_dir / r["job"]) for r in rows if r.get("status") == "ok"]
     return max(ends) - min(starts) if starts and ends else float("nan")
 
 

@@ -24,6 +24,9 @@ from ..render.layouts import SPHERES
 if TYPE_CHECKING:  # pragma: no cover
     from ..config.schema import TrainConfig
 
+# the key that asks for each per-shape module of G's training (``modules``)
+MODULE_KEYS = {"hypotheses": "hypotheses", "polarity": "flip_explore"}
+
 REGISTRY = OPTIONS["selector"]  # every selector option, by name (filled by the selector modules)
 register = REGISTRY.register
 schema = REGISTRY.schema
@@ -71,6 +74,16 @@ class SelectorConfig(OptionConfig):
     def modules(self, views: int) -> dict:
         """Extra modules the model keeps for G's training (their buffers travel in checkpoints)."""
         return {}
+
+    def multi_process_problem(self, views: int, processes: int) -> Optional[str]:
+        """One line when this selector cannot train in ``processes`` processes (per-shape statistics
+        of its training that are not shared between them), else None."""
+        extra = self.modules(views)
+        if not extra:
+            return None
+        key = next(MODULE_KEYS[name] for name in extra if name in MODULE_KEYS)
+        return (f"selector.{key}={getattr(self, key)} with {processes} processes: selector={self.name}'s per-shape "
+                f"statistics ({', '.join(extra)}) are not shared between processes yet; run it in one process")
 
     def training(self):
         from .training import SelectorTraining
