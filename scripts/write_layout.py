@@ -21,6 +21,13 @@ def first_sentence(path: Path) -> str:
     return (m.group(1) if m else para).rstrip(".") if para else ""
 
 
+def name(path: Path, package: Path) -> str:
+    """A module's name within its top-level package: ``trainer.py``, ``strategies/race.py``
+    (a subpackage by its folder: ``strategies/``)."""
+    rel = path.relative_to(package).as_posix()
+    return rel[: -len("__init__.py")] if path.name == "__init__.py" else rel
+
+
 def block() -> str:
     out = []
     top = sorted(p for p in (ROOT / "mvtn_exp").glob("*.py") if p.name != "__init__.py")
@@ -29,10 +36,10 @@ def block() -> str:
     out += [f"| `mvtn_exp/{p.name}` | {first_sentence(p)} |" for p in top]
     for pkg in packages:
         out.append(f"\n### `mvtn_exp/{pkg.name}/`\n\n{first_sentence(pkg / '__init__.py')}.\n")
-        modules = [p for p in sorted(pkg.glob("*.py")) if p.name != "__init__.py"]
+        modules = [p for p in sorted(pkg.rglob("*.py")) if p.name != "__init__.py" or p.parent != pkg]
         if modules:
             out.append("| module | role |\n|---|---|")
-            out += [f"| `{p.name}` | {first_sentence(p)} |" for p in modules]
+            out += [f"| `{name(p, pkg)}` | {first_sentence(p)} |" for p in modules]
     return "\n".join(out).replace("\n\n\n", "\n\n")
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from mvtn_exp.render import tiles
+from mvtn_exp.render import nearest
 
 
 def _pixel_grid(H, W):
@@ -83,7 +83,7 @@ def dense_point_search(xy, z, image, *, H, W, K, radius, znear, num_images):
     return _to_selection(cands, K)
 
 
-def _to_selection(cands, K) -> tiles.Selection:
+def _to_selection(cands, K) -> nearest.Selection:
     """Per pixel, sorted candidates -> the first K as slots and the others as the rest."""
     if K is None:
         K = max(1, max(len(c) for c in cands))
@@ -97,6 +97,6 @@ def _to_selection(cands, K) -> tiles.Selection:
             rest_pix += [p] * len(ids[K:])
             rest_prim += ids[K:]
     long = dict(dtype=torch.long)
-    return tiles.Selection(torch.tensor(pix, **long), torch.tensor(prim, **long).reshape(-1, K),
+    return nearest.Selection(torch.tensor(pix, **long), torch.tensor(prim, **long).reshape(-1, K),
                            torch.tensor(rest_pix, **long), torch.tensor(rest_prim, **long),
                            max((len(c) for c in cands), default=0))

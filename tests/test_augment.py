@@ -8,6 +8,8 @@ import torch
 from hydra import compose, initialize_config_module
 
 from mvtn_exp.data import synthetic_views as sv
+
+from mvtn_exp.data import view_detail as vd
 from mvtn_exp.data.collate import collate_shapes
 from mvtn_exp.data.synthetic import SyntheticShapes
 from mvtn_exp.engine import train
@@ -56,9 +58,9 @@ def test_turn_batch_moves_points_meshes_and_frames_together(tmp_path):
     assert torch.equal(out["detail_size"], batch["detail_size"]) and torch.equal(out["labels"], batch["labels"])
     assert torch.equal(batch["points"], collate_shapes([ds[i] for i in range(3)])["points"])  # input untouched
     # the turned frame still says what the renderer shows: a camera on the turned cup axis sees the detail
-    a, e = sv.view_angles(out["detail_axis"].double().numpy())
-    cams = sv.camera_positions(a, e)[:, None]
-    assert sv.sees_detail(out["detail_anchor"].numpy(), out["detail_axis"].numpy(), out["detail_size"].numpy(), cams).all()
+    a, e = vd.view_angles(out["detail_axis"].double().numpy())
+    cams = vd.camera_positions(a, e)[:, None]
+    assert vd.sees_detail(out["detail_anchor"].numpy(), out["detail_axis"].numpy(), out["detail_size"].numpy(), cams).all()
     with pytest.raises(ValueError, match="turn_batch"):
         turn_batch(batch, R[:2])
 
@@ -87,8 +89,8 @@ def test_detail_report_counts_views_that_see_the_detail(tmp_path):
     ds = sv.SyntheticViews(tmp_path, "test", num_per_class=(1, 1, 2), num_points=64, progress=False)
     n = len(ds)
     axis = ds._a["detail_axis"].astype(np.float64)
-    a_in, e_in = sv.view_angles(axis)  # on the cup axis: sees it
-    a_out, e_out = sv.view_angles(-axis)  # from below the floor: does not
+    a_in, e_in = vd.view_angles(axis)  # on the cup axis: sees it
+    a_out, e_out = vd.view_angles(-axis)  # from below the floor: does not
     half = np.arange(n) % 2 == 0
     azim = np.where(half, a_in, a_out)[:, None].repeat(2, 1)
     elev = np.where(half, e_in, e_out)[:, None].repeat(2, 1)

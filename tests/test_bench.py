@@ -13,7 +13,7 @@ import torch
 from conftest import random_triangles
 from mvtn_exp.bench.dense import dense_pairs, dense_search, estimate_pairs
 from mvtn_exp.runtime.memory import PeakMemory
-from mvtn_exp.bench.render_bench import torus
+from mvtn_exp.bench.scenes import torus
 from mvtn_exp.render import layouts, mesh_raster
 from mvtn_exp.render.renderer import MultiViewRenderer
 
@@ -59,7 +59,8 @@ def test_quick_benchmark_cli(tmp_path):
     targets = _table(md, "Targets")
     edges = _table(md, "Soft edges")
     assert len(edges) == 3 and all(int(r[3]) > 0 and 0 <= float(r[4].rstrip("%")) <= 100 for r in edges)
-    assert len(targets) == 8 and all(re.match(r"PASS|MISS|n/a", r[-1]) for r in targets)
+    # hard, soft (2 shadings), compiled soft (2), points, LOD (2), batch of 8 (2)
+    assert len(targets) == 10 and all(re.match(r"PASS|MISS|n/a", r[-1]) for r in targets)
     modules = _table(md, "Modules")
     assert len(modules) == 14  # R: 3 kinds x M in {1, 4}; G: 3 + the regressor alone; C: 2 backbones x 2 M
     params = {(r[0], r[1]): int(r[2].replace(",", "")) for r in modules}
@@ -225,7 +226,7 @@ def test_step_ratio_overrides_of_the_learned_side_leave_the_fixed_side_alone(tmp
 
 
 def test_paired_times_alternate_which_side_goes_first():
-    from mvtn_exp.bench.render_bench import paired_times
+    from mvtn_exp.bench.timing import paired_times
 
     calls = []
     ta, tb = paired_times(lambda: calls.append("a"), lambda: calls.append("b"), torch.device("cpu"), repeats=5,
@@ -240,7 +241,7 @@ def test_paired_times_alternate_which_side_goes_first():
 def test_paired_ratio_is_the_median_of_the_rounds_ratios():
     """A load that changes between rounds cancels in each round's ratio; the ratio of the medians
     would pair one side's loaded rounds with the other's quiet ones (the bench's rounds at a758e68)."""
-    from mvtn_exp.bench.render_bench import paired_ratio
+    from mvtn_exp.bench.timing import paired_ratio
 
     a, b = [103.5, 98.8, 83.4, 69.8, 64.2], [56.3, 56.8, 36.8, 36.3, 36.6]
     assert paired_ratio((a, b)) == pytest.approx(103.5 / 56.3)  # rounds' ratios 1.84 1.74 2.27 1.92 1.75
@@ -251,7 +252,8 @@ def test_paired_ratio_is_the_median_of_the_rounds_ratios():
 
 def test_targets_take_their_ratios_from_the_paired_times():
     """With paired times the Targets rows use them (not the grid's own rows, timed at another moment)."""
-    from mvtn_exp.bench.render_bench import Bench, BenchOptions, targets
+    from mvtn_exp.bench.render_bench import Bench, BenchOptions
+    from mvtn_exp.bench.render_report import targets
 
     b = Bench(BenchOptions())
     S, M = b.grid.target_size, b.grid.target_views

@@ -86,7 +86,7 @@ def test_numpy_rng_arrays_load_and_other_formats_are_refused_in_one_line(tmp_pat
     state = checkpoint.load(tmp_path / "now.pt")
     assert isinstance(state["rng"]["numpy"][1], np.ndarray)
     seeding.set_rng_state(state["rng"])
-    for written in (None, 2):  # format 1 files carried no format key
+    for written in (None, 2, 3):  # format 1 files carried no format key; 3: one union schema of every dataset's keys
         old = {"model": {"w": torch.ones(2)}, "config": {"views": 1}, "epoch": 0, **({"format": written} if written else {})}
         torch.save(old, tmp_path / "old.pt")
         with pytest.raises(checkpoint.CheckpointMismatch) as err:

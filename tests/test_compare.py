@@ -8,7 +8,10 @@ import pytest
 from scipy import stats
 
 from mvtn_exp.cli.compare import main, parse_seeds
-from mvtn_exp.runs.compare import CompareError, _letter, compare, find_runs
+from mvtn_exp.runs.compare import compare
+from mvtn_exp.runs.compare_md import _letter
+from mvtn_exp.runs.folders import find_runs
+from mvtn_exp.runs.sides import CompareError
 
 
 def _config(selector="spherical", views=1, seed=0, dataset_seed=0, epochs=20, threads=1, patience=None):

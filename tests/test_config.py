@@ -119,7 +119,7 @@ def test_every_job_of_a_sweep_experiment_composes(name):
     for c in composed:
         cfg = OmegaConf.to_object(c).validate()
         seen.add((cfg.views, cfg.selector.name, cfg.mvnet.name, cfg.backbone.name, cfg.point_encoder.name,
-                  getattr(cfg.selector, "learn_distance", None), cfg.dataset.variant, cfg.renderer.mode, cfg.image_size, cfg.seed,
+                  getattr(cfg.selector, "learn_distance", None), getattr(cfg.dataset, "variant", None), cfg.renderer.mode, cfg.image_size, cfg.seed,
                   getattr(cfg.selector, "objective", None), cfg.backbone.weights, cfg.renderer.train_color,
                   cfg.renderer.train_light, cfg.selector.distance))
     assert len(seen) == len(checked)  # every job is a different setting
@@ -298,7 +298,8 @@ def test_device_auto_resolves_to_what_the_machine_has(monkeypatch):
     """device=auto is every CLI's default and never fails: CUDA when torch sees it, else CPU."""
     from mvtn_exp.cli.bench import BenchAppConfig
     from mvtn_exp.cli.render import RenderAppConfig
-    from mvtn_exp.config.schema import EvalConfig, TrainConfig, check_device, resolve_device
+    from mvtn_exp.config.schema import TrainConfig, check_device, resolve_device
+    from mvtn_exp.config.eval_schema import EvalConfig
 
     assert TrainConfig().device == EvalConfig().device == BenchAppConfig().device == RenderAppConfig().device == "auto"
     check_device("device", "auto")

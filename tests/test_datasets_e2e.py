@@ -48,9 +48,9 @@ def test_missing_real_dataset_names_layout(tmp_path):
 
     for name in ("modelnet40", "scanobjectnn", "shapenet"):
         shape = "mesh" if name == "modelnet40" else "points"
-        variant = "obj_bg" if name == "scanobjectnn" else ""
+        variant = {"variant": "obj_bg"} if name == "scanobjectnn" else {}  # (a key of scanobjectnn only)
         with pytest.raises(DatasetNotFound, match="expected layout"):
-            _run({"name": name, "root": str(tmp_path / "none"), "shape": shape, "variant": variant}, tmp_path)
+            _run({"name": name, "root": str(tmp_path / "none"), "shape": shape, **variant}, tmp_path)
 
 
 @pytest.mark.parametrize("fmt", ["normal_resampled", "ply_hdf5_2048"])
@@ -69,7 +69,7 @@ def test_shapenet_retrieval_reports_shrec17_metrics(tmp_path):
     from test_shapenet import _tree
 
     from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
-    from mvtn_exp.config.schema import EvalConfig, RetrievalEvalConfig
+    from mvtn_exp.config.eval_schema import EvalConfig, RetrievalEvalConfig
 
     root = _tree(tmp_path / "ShapeNetCore.v2")
     _run({"name": "shapenet", "root": str(root), "shape": "points", "num_points": 128,

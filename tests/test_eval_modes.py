@@ -10,7 +10,7 @@ import pytest
 
 from mvtn_exp.engine import train
 from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
-from mvtn_exp.config.schema import EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig
+from mvtn_exp.config.eval_schema import EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -198,6 +198,7 @@ def test_a_clear_lead_ends_exploration_early(tmp_path):
     assert [h["race_end"] for h in run["history"]] == ["lead", None, None]
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_a_race_without_a_clear_lead_ends_at_its_cap_and_says_so(tmp_path):
     """race_z=None: no lead is ever clear, so both epochs of the race render both hypotheses and
     the second ends it at its cap, recorded as such (what mvtn-compare's race_led reads)."""
@@ -243,6 +244,7 @@ def test_a_race_on_a_few_batches_is_decided_within_its_epoch(tmp_path, monkeypat
     assert abs(resumed["history"][1]["train_loss"] - second["train_loss"]) <= 1e-6
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_race_without_probes_holds_g_until_the_race_ends(tmp_path, monkeypatch):
     """race_probes=false over a 1-epoch race and 1 epoch after it (6 steps each): no probe estimate
     and no G step while racing (G's gradient norm 0 in epoch 1, no AdamW state for G), one estimate
@@ -270,7 +272,7 @@ def test_race_without_probes_holds_g_until_the_race_ends(tmp_path, monkeypatch):
 def test_pooled_race_scores_each_hypothesis_alone(tmp_path):
     """hypothesis_mode=pooled: C trains on all H x M views of a shape as one, and each hypothesis's
     race loss is C (eval mode) on that hypothesis's M views alone."""
-    from mvtn_exp.selectors.probes import hypothesis_losses
+    from mvtn_exp.selectors.strategies.race import hypothesis_losses
     from mvtn_exp.model import build_mvtn
     from mvtn_exp.tasks import classification
     cfg = as_config(tiny(str(tmp_path), **{**HYP, "selector.race_mode": "pooled"}))
@@ -287,6 +289,7 @@ def test_pooled_race_scores_each_hypothesis_alone(tmp_path):
         assert torch.allclose(got[:, h], loss(alone, labels), atol=1e-6)
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_pooled_exploring_run_trains_and_decides(tmp_path):
     cache = str(tmp_path / "cache")
     pooled = train(tiny(cache, epochs=2, **{**HYP, "selector.race_mode": "pooled"}), tmp_path / "pooled")

@@ -66,6 +66,7 @@ def sweeps(cache, tmp_path_factory) -> dict:
     return out
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 @pytest.mark.parametrize("name,threads", [("joblib", max(1, usable_cores() // 2)), ("submitit_local", 1)])
 def test_parallel_sweep_runs_every_job_with_its_share_of_the_cores(sweeps, name, threads):
     """Two jobs side by side: each finishes, records the threads it ran with, and the sweep
@@ -99,6 +100,7 @@ def test_a_requeued_cluster_job_goes_on_from_its_last_checkpoint(tmp_path, monke
     assert requeued_checkpoint(run) is None  # not a cluster job
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_summary_on_demand_lists_unfinished_jobs_and_refuses_a_non_sweep(sweeps, tmp_path, capsys):
     import shutil
 

@@ -48,3 +48,21 @@ def test_a_backwards_import_breaks_a_contract(tmp_path, module, line, broken):
     out = lint(where, where / ".importlinter")
     assert out.returncode == 1 and "BROKEN" in out.stdout
     assert broken in out.stdout, out.stdout[-3000:]
+
+
+def test_short_modules_and_functions():
+    """No module of the package over 400 lines; no function over 60 lines where the loop, the
+    commands and the selectors live (``scripts/code_shape.py`` prints the longest)."""
+    import ast
+
+    package = ROOT / "mvtn_exp"
+    long_modules = [f"{p.relative_to(package)} ({n})" for p in package.rglob("*.py")
+                    if (n := len(p.read_text().splitlines())) > 400]
+    assert not long_modules, f"modules over 400 lines: {long_modules}"
+    long_functions = []
+    for part in ("engine", "cli", "selectors"):
+        for path in (package / part).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= 60:
+                    long_functions.append(f"{path.relative_to(package)}:{node.lineno} {node.name}")
+    assert not long_functions, f"functions over 60 lines: {long_functions}"

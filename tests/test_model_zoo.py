@@ -19,7 +19,7 @@ from mvtn_exp.models.backbones import build_backbone
 from mvtn_exp.models.multiview import build_multiview
 from mvtn_exp.models.point_encoders import build_point_encoder
 from mvtn_exp.models.view_transformer import ViewTransformer
-from mvtn_exp.config.schema import EvalConfig
+from mvtn_exp.config.eval_schema import EvalConfig
 from mvtn_exp.selectors import NoisySelector, build_selector
 
 from conftest import tiny_config

@@ -19,7 +19,8 @@ from omegaconf import OmegaConf
 from mvtn_exp.engine import train
 from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
 from mvtn_exp.engine.trainer import config_dict
-from mvtn_exp.config.schema import EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig, register_configs
+from mvtn_exp.config.schema import register_configs
+from mvtn_exp.config.eval_schema import EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig
 
 register_configs()
 CONF = Path(__file__).resolve().parents[1] / "mvtn_exp" / "conf" / "experiment"
@@ -84,9 +85,10 @@ def _small(name: str, trees: dict, extra=()) -> dict:
     ds = base.dataset.name
     tree = trees["modelnet40_h5" if getattr(base.dataset, "format", None) == "ply_hdf5_2048" else ds]
     over = [f"+experiment={name}", "image_size=16", "batch_size=4", f"dataset.root={tree}",
-            f"dataset.cache_dir={trees['cache']}", "dataset.num_points=128", "logger.progress=false",
-            "logger.tensorboard=false", *extra]
-    if ds != "shapenet":
+            "dataset.num_points=128", "logger.progress=false", "logger.tensorboard=false", *extra]
+    if hasattr(base.dataset, "cache_dir"):  # the datasets that preprocess into a cache (not scanobjectnn)
+        over.append(f"dataset.cache_dir={trees['cache']}")
+    if hasattr(base.dataset, "val_fraction"):  # the datasets without a val split of their own
         over.append("dataset.val_fraction=0.34")
     if base.selector.name == "optimized":
         over.append("selector.steps=2")

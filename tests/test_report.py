@@ -12,7 +12,7 @@ import pytest
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
-from mvtn_exp.runs.compare import find_runs, flatten
+from mvtn_exp.runs.folders import find_runs, flatten
 from mvtn_exp.runs.report import ReportError, load_tables, metric_value, report, row_matches, to_markdown
 from mvtn_exp.engine.trainer import config_dict
 from mvtn_exp.config.schema import register_configs
@@ -79,7 +79,7 @@ def test_welch_interval_matches_scipy_on_raw_samples():
     """The two-sample interval from means and stds equals scipy's Welch interval on the samples."""
     from scipy import stats
 
-    from mvtn_exp.runs.compare import mean_sd
+    from mvtn_exp.runs.paired_stats import mean_sd
     from mvtn_exp.runs.report import welch
 
     a, b = [90.1, 91.3, 89.7, 92.0, 90.8], [92.5, 93.1, 92.2, 93.8]

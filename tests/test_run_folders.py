@@ -9,8 +9,7 @@ from pathlib import Path
 import pytest
 
 from mvtn_exp.runs import sweep, tradeoff
-from mvtn_exp.runs.compare import find_runs
-from mvtn_exp.runs.folders import NO_CONFIG, sweep_jobs
+from mvtn_exp.runs.folders import NO_CONFIG, find_runs, sweep_jobs
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mvtn_exp"
 
@@ -115,3 +114,17 @@ def test_no_second_reader_of_run_folders():
     found = [hit for p in readers for hit in _reads_of_run_files(p)]
     assert not found, f"a second reader of run folders: {found}; read them through runs/folders.py"
     assert _reads_of_run_files(PACKAGE / "runs" / "folders.py")  # the check sees the one reader's reads
+
+
+def test_an_old_record_with_every_options_keys_pairs_with_a_new_one():
+    """A record from before datasets had one schema per option holds keys its dataset never had
+    (``dataset.family``): they are left out, named, so old and new runs of one setting pair."""
+    from mvtn_exp.runs.folders import Run
+    from mvtn_exp.runs.sides import fill_added_keys
+
+    new = {"dataset.name": "modelnet40", "dataset.format": "off", "views": 4}
+    old = Run(Path("old"), "ok", seed=0, settings={**new, "dataset.family": "", "dataset.num_per_class": [24, 12, 24]})
+    now = Run(Path("new"), "ok", seed=0, settings=dict(new))
+    fill_added_keys([old, now])
+    assert old.settings == now.settings
+    assert sorted(old.filled) == ["-dataset.family", "-dataset.num_per_class"] and now.filled == []

@@ -6,7 +6,7 @@ import re
 from pathlib import Path
 
 from mvtn_exp.runs import settings as run_keys, sweep
-from mvtn_exp.runs.compare import find_runs
+from mvtn_exp.runs.folders import find_runs
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mvtn_exp"
 
@@ -36,3 +36,17 @@ def test_no_second_list_of_run_local_keys_in_the_package():
     second = [p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py") if p.name != "settings.py"
               and re.search(r"""\(\s*["']seed["']\s*,\s*["'](device|ckpt_path|threads)""", p.read_text())]
     assert not second, f"a second definition of what is not a setting in {second}: use runs/settings.py"
+
+
+def test_one_reading_of_a_dotted_key():
+    """Configs, checkpoints and metrics read dotted keys one way (runtime/dotted.py), keys with
+    dots of their own included; no second walker in the package."""
+    from mvtn_exp.runtime.dotted import lookup
+
+    record = {"cost": {"infer_ms": 2.0}, "acc_at": {"0.5": 0.9, "0": 0.1}, "a": {"b": {"c": None}}}
+    assert lookup(record, "cost.infer_ms") == 2.0 and lookup(record, "acc_at.0.5") == 0.9
+    assert lookup(record, "acc_at.0") == 0.1 and lookup(record, "cost.nope") is None
+    assert lookup(record, "a.b.c", default="x") is None and lookup(record, "a.z", default="x") == "x"
+    walkers = [p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py")
+               if re.search(r"for \w+ in [\w.()]*\.split\(\"\.\"\):", p.read_text())]
+    assert walkers == [], f"a second dotted-key walker in {walkers}: use runtime/dotted.lookup"

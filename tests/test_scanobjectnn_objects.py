@@ -95,12 +95,12 @@ def test_refused_inputs_name_the_file(tmp_path):
         ScanObjectNNObjects(tmp_path, "test", "obj_bg")
 
 
-def test_config_refuses_pb_t50_rs_from_the_object_files_and_reads_old_configs():
-    from mvtn_exp.config.schema import DatasetConfig
+def test_config_refuses_pb_t50_rs_from_the_object_files_and_formats_of_other_datasets():
+    from mvtn_exp.data.config import ScanObjectNNConfig
 
     with pytest.raises(ValueError, match="pb_t50_rs exists only in the h5 release"):
-        DatasetConfig(name="scanobjectnn", variant="pb_t50_rs", format="object_dataset", shape="points").validate()
-    with pytest.raises(ValueError, match="dataset.format"):
-        DatasetConfig(name="scanobjectnn", variant="obj_bg", format="ply_hdf5_2048", shape="points").validate()
-    old = DatasetConfig(name="scanobjectnn", variant="obj_bg", format="off", shape="points").validate()
-    assert old.format == "h5"  # stored before ScanObjectNN had formats
+        ScanObjectNNConfig(variant="pb_t50_rs", format="object_dataset").validate()
+    for other in ("ply_hdf5_2048", "off"):  # ModelNet40's formats
+        with pytest.raises(ValueError, match="dataset.format"):
+            ScanObjectNNConfig(variant="obj_bg", format=other).validate()
+    assert ScanObjectNNConfig().validate().format == "h5"  # the h5 release unless asked

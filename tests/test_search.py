@@ -10,8 +10,8 @@ from mvtn_exp.runtime import checkpoint
 from mvtn_exp.engine import train
 from mvtn_exp.model import build_mvtn
 from mvtn_exp.engine.trainer import as_config
-from mvtn_exp.selectors import search
-from mvtn_exp.selectors.search import candidates, targets, to_angles, unit_directions
+from mvtn_exp.selectors.strategies import search
+from mvtn_exp.selectors.strategies.search import candidates, targets, to_angles, unit_directions
 
 from conftest import tiny_config
 
@@ -46,7 +46,7 @@ def test_g_follows_the_search_to_the_best_direction(tmp_path, monkeypatch):
     def score(self, model, batch, views, labels):
         return -unit_directions(views[0], views[1])[..., 1]
 
-    monkeypatch.setattr(search.SearchTraining, "score", score)
+    monkeypatch.setattr(search.Search, "score", score)
     cfg = tiny_config(str(tmp_path / "cache"), **{"selector.name": "mvtn_spherical", "selector.grad": "search",
                                                   "selector.lr": 0.05, "views": 1, "epochs": 3, "image_size": 16,
                                                   "dataset.num_per_class": [6, 1, 1]})

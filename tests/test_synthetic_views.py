@@ -11,6 +11,8 @@ from omegaconf import OmegaConf
 from test_synthetic import on_surface_distance
 
 from mvtn_exp.data import synthetic_views as sv
+
+from mvtn_exp.data import view_detail as vd
 from mvtn_exp.data.collate import collate_shapes
 from mvtn_exp.data.datasets import build_dataset
 from mvtn_exp.data.synthetic import CacheWarning, random_rotation
@@ -184,7 +186,7 @@ def test_sees_detail_agrees_with_ray_casting_against_the_cup(family):
     for k in range(4):
         R = random_rotation("so3", rng)
         v, f, anchor, axis, size = sv.make_shape("empty", 100 + k, R, family=family)  # no detail over the floor centre
-        vis = sv.sees_detail(anchor[None], axis[None], size[None], cams)[0]
+        vis = vd.sees_detail(anchor[None], axis[None], size[None], cams)[0]
         blocked = hits(np.repeat(anchor[None] + 1e-6 * axis, len(cams), 0), cams, v, f)
         # leave out the lines that pass within the 24-gon's rim band (inscribed circle .. corners)
         d = cams - anchor
@@ -197,7 +199,7 @@ def test_sees_detail_agrees_with_ray_casting_against_the_cup(family):
 
 
 def test_one_fixed_view_sees_the_detail_at_most_half_the_time(splits):
-    rows = {(r["layout"], r["M"]): r for r in sv.visibility_table(splits["test"], poses=50)}
+    rows = {(r["layout"], r["M"]): r for r in vd.visibility_table(splits["test"], poses=50)}
     for layout in ("circular", "spherical"):
         one = rows[(layout, 1)]
         assert 0.05 < one["seen"] <= 0.5 and 0.1 < one["seen_mc"] <= 0.4, one
@@ -214,11 +216,11 @@ def test_renders_show_the_detail_exactly_when_the_criterion_says(splits):
     side = np.cross(axis, [[0.0, 1.0, 0.0]])
     side /= np.linalg.norm(side, axis=1, keepdims=True)
     off = np.cos(np.radians(80)) * axis + np.sin(np.radians(80)) * side
-    (a0, e0), (a1, e1) = sv.view_angles(axis), sv.view_angles(off)
+    (a0, e0), (a1, e1) = vd.view_angles(axis), vd.view_angles(off)
     azim = np.stack([a0, a1, np.zeros(len(ds))], 1)
     elev = np.stack([e0, e1, np.full(len(ds), 30.0)], 1)
-    traces = sv.rendered_traces(ds, azim, elev)
-    expect = sv.sees_detail(ds._a["detail_anchor"], axis, ds._a["detail_size"], sv.camera_positions(azim, elev))
+    traces = vd.rendered_traces(ds, azim, elev)
+    expect = vd.sees_detail(ds._a["detail_anchor"], axis, ds._a["detail_size"], vd.camera_positions(azim, elev))
     detail = ds.labels != CLASSES.index("empty")
     assert expect[:, 0].all() and not expect[:, 1].any()
     assert (traces[detail, 0] >= 5).all(), traces[:, 0]  # seen down the axis, every detail shows
@@ -367,7 +369,7 @@ def test_slab_one_view_down_the_normal_sees_one_face_only(slab):
     k = int(np.argmax(np.abs(cos).mean(0)))
     assert (np.abs(cos[:, k]) > 0.95).mean() > 0.9  # one principal axis is the normal
     normal = R[:, k]
-    seen = [sv.sees_detail(slab._a["detail_anchor"], axis, slab._a["detail_size"], (s * 2.2 * normal)[:, None]).mean()
+    seen = [vd.sees_detail(slab._a["detail_anchor"], axis, slab._a["detail_size"], (s * 2.2 * normal)[:, None]).mean()
             for s in (1, -1)]
     assert 0.2 < seen[0] < 0.8 and abs(seen[0] + seen[1] - 1) < 1e-9, seen
 
@@ -381,7 +383,7 @@ def test_other_families_render_the_detail_exactly_when_the_criterion_says(family
     side = np.cross(axis, [[0.0, 1.0, 0.0]])
     side /= np.linalg.norm(side, axis=1, keepdims=True)
     off = np.cos(np.radians(80)) * axis + np.sin(np.radians(80)) * side
-    (a0, e0), (a1, e1) = sv.view_angles(axis), sv.view_angles(off)
-    traces = sv.rendered_traces(ds, np.stack([a0, a1], 1), np.stack([e0, e1], 1))
+    (a0, e0), (a1, e1) = vd.view_angles(axis), vd.view_angles(off)
+    traces = vd.rendered_traces(ds, np.stack([a0, a1], 1), np.stack([e0, e1], 1))
     detail = ds.labels != CLASSES.index("empty")
     assert (traces[detail, 0] >= 5).all() and (traces[:, 1] == 0).all() and (traces[~detail] == 0).all()

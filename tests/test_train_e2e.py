@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from mvtn_exp.engine import train
+from mvtn_exp.runtime import checkpoint
 from mvtn_exp.runtime.checkpoint import CheckpointMismatch, save_atomic
 from mvtn_exp.engine.trainer import as_config
 from mvtn_exp.selectors.training import LearnedTraining
@@ -63,7 +64,7 @@ def test_artifacts_and_metrics(full_run):
     assert m["train_wall_seconds"] == pytest.approx(sum(m["epoch_seconds"])) and m["train_wall_seconds"] > 0
     last = torch.load(run / "last.pt", weights_only=False)
     assert last["epoch"] == 2 and last["config"]["views"] == 2  # epochs completed, as metrics.json counts
-    assert last["best_epoch"] == m["best_epoch"] and last["format"] == 3
+    assert last["best_epoch"] == m["best_epoch"] and last["format"] == checkpoint.FORMAT == 4
     assert {"model", "optimizer", "scheduler", "rng", "best_val_acc"} <= set(last)
     assert last["best_val_acc"] == m["best_val_acc"]
 

@@ -222,6 +222,7 @@ def test_no_probes_once_g_is_frozen(tmp_path, monkeypatch):
     assert {int(state["state"][i]["step"]) for i in groups["mvnet"] if i in state["state"]} == {12}
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_g_moves_in_one_epoch_of_every_k(tmp_path, monkeypatch):
     """selector.move_every=2 over 3 epochs of 6 steps: G probes and steps in epochs 1 and 3 only
     (12 probe estimates, 12 AdamW steps for G, 18 for C), epoch 2 records no gradient for G, and a
@@ -326,13 +327,14 @@ def test_axis_views_look_down_the_cup(tmp_path, capsys):
 
     av = study("axis_views")
     from mvtn_exp.data import synthetic_views as sv
+    from mvtn_exp.data import view_detail as vd
 
     ds = sv.SyntheticViews(tmp_path / "views", "test", (2, 1, 2), seed=0, num_points=64, progress=False)
     axis = torch.as_tensor(ds._a["detail_axis"])
     axis = torch.cat([axis, torch.tensor([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])])  # the poles too
     azim, elev, dist = av.axis_views(axis, 4, 2.2)
     assert azim.shape == (len(axis), 4) and torch.isfinite(azim).all() and torch.isfinite(elev).all()
-    d = torch.as_tensor(sv.camera_positions(azim.numpy(), elev.numpy(), 1.0))  # [N, M, 3] unit directions
+    d = torch.as_tensor(vd.camera_positions(azim.numpy(), elev.numpy(), 1.0))  # [N, M, 3] unit directions
     cos = (d * torch.nn.functional.normalize(axis.double(), dim=1)[:, None]).sum(-1)
     torch.testing.assert_close(cos[:, 0], torch.ones(len(axis), dtype=torch.float64), atol=1e-5, rtol=0)
     torch.testing.assert_close(cos[:, 1:], torch.full((len(axis), 3), np.cos(np.radians(30.0)), dtype=torch.float64),

@@ -2,7 +2,8 @@
 
 * ``runtime.memory.PeakMemory`` (used here): extra peak memory of a block (CUDA allocator stats, or sampled RSS on CPU).
 * ``dense``: a brute-force dense K=1 face search, the timing reference for ``search_faces``.
-* ``render_bench``: the benchmark grid, Markdown tables and raw JSON; ``modules`` (the paper's
+* ``render_bench``: the benchmark grid; ``scenes`` (its tori, point clouds and renderers), ``timing``
+  (its clocks), ``render_report`` (targets, Markdown tables and raw JSON); ``modules`` (the paper's
   module table), ``scaling`` (curves), ``edge_error`` (soft edges against the every-face reference).
 * ``step_ratio``: learned against fixed views per training step; ``loader_bench``: data loading.
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from ..render import mesh_raster, tiles
+from ..render import mesh_raster, nearest, tiles
 from ..render.edge_distance import covers
 
 DEFAULT_CHUNK_PAIRS = 1 << 22
@@ -32,10 +32,10 @@ def dense_pairs(pf: mesh_raster.ProjectedFaces, H: int, W: int) -> int:
     return int(H) * int(W) * int(pf.alive.sum())
 
 
-def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs: int = DEFAULT_CHUNK_PAIRS) -> tiles.Selection:
+def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs: int = DEFAULT_CHUNK_PAIRS) -> nearest.Selection:
     """Nearest covering face per pixel (K=1, no blur) by brute force.
 
-    Returns a ``tiles.Selection``: pix ``[P]`` ascending flat pixel index ``image*H*W + row*W + col``,
+    Returns a ``nearest.Selection``: pix ``[P]`` ascending flat pixel index ``image*H*W + row*W + col``,
     prim ``[P, 1]`` face-view index; only pixels covered by at least one face appear.
     """
     dev = pf.cols.device
@@ -43,7 +43,7 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
         HW = H * W
         fv = torch.nonzero(pf.alive).squeeze(1)
         if len(fv) == 0:
-            return tiles.Selection(torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, 1, dtype=torch.long, device=dev))
+            return nearest.Selection(torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, 1, dtype=torch.long, device=dev))
         img = pf.image_of(fv)
         # group face-views by image; the stable sort keeps them in ascending fv inside each image
         order = torch.sort(img, stable=True).indices
@@ -76,4 +76,4 @@ def dense_search(pf: mesh_raster.ProjectedFaces, *, H: int, W: int, chunk_pairs:
             start += n
         flat = best_fv.reshape(-1)
         pix = torch.nonzero(flat >= 0).squeeze(1)
-        return tiles.Selection(pix, flat.index_select(0, pix).unsqueeze(1))
+        return nearest.Selection(pix, flat.index_select(0, pix).unsqueeze(1))

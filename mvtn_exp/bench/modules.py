@@ -17,7 +17,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from ..models.multiview import build_multiview
 from ..selectors import build_selector
-from .render_bench import Views, med_ms, render_fns, renderer_for, time_runs, torus, torus_points
+from .scenes import Views, render_fns, renderer_for, torus, torus_points
+from .timing import med_ms, time_runs
 
 BATCH = 4
 NUM_CLASSES = 40
@@ -106,7 +107,7 @@ def module_rows(quick: bool, device, repeats: int, budget_s: float, seed: int = 
 
 
 def markdown(rows: list[dict]) -> str:
-    from .render_bench import md_table
+    from .render_report import md_table
 
     body = [[r["module"], r["setting"], f"{r['params']:,}",
              "n/a (not FLOPs)" if r["flops_per_shape"] is None else f"{r['flops_per_shape'] / 1e9:.3g}",

@@ -22,7 +22,9 @@ from ..models.point_encoders import PaperPointNetConfig, PointEncoderConfig, bui
 from ..config.options import OPTIONS
 from ..selectors import build_selector
 from .modules import RegressorAlone
-from .render_bench import Views, md_table, med_ms, render_fns, renderer_for, time_runs, torus, torus_points
+from .render_report import md_table
+from .scenes import Views, render_fns, renderer_for, torus, torus_points
+from .timing import med_ms, time_runs
 
 POINTS = 2048
 NUM_CLASSES = 40

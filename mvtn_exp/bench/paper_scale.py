@@ -24,7 +24,7 @@ from .kernel_ops import OpCounter
 from ..runtime.memory import PeakMemory
 
 BATCH, VIEWS, SIZE = 32, 12, 224
-MESH = "torus-20k"  # the benchmark mesh rendered (render_bench.TORUS_SECTIONS)
+MESH = "torus-20k"  # the benchmark mesh rendered (scenes.TORUS_SECTIONS)
 MODES = {"hard": dict(mode="hard"), "soft": dict(mode="soft", faces_per_pixel=8, shading="smooth"),
          "points": dict(points_per_pixel=8)}
 CUDA_80GB_MB = budget.CUDA_SHARE * 80 * 1024  # what memory_budget_mb=null picks with 80 GiB free
@@ -49,7 +49,7 @@ def scale(batch: int, views: int, size: int, mesh: str = "torus-20k"):
 
 def scene(kind: str, B: int, device) -> Meshes | PointClouds:
     """B rotated copies of the benchmark's 20k-face torus, or of its 2,048 surface points."""
-    from .render_bench import rotated_copies_y, torus, torus_points
+    from .scenes import rotated_copies_y, torus, torus_points
 
     if kind == "points":
         src = torus_points(2048, 0, device)

@@ -22,7 +22,8 @@ import numpy as np
 import torch
 
 from ..data.shapes import Meshes
-from .render_bench import Views, med_ms, peak_of, render_fns, renderer_for, rotated_copies_y, time_runs, torus_of
+from .scenes import Views, render_fns, renderer_for, rotated_copies_y, torus_of
+from .timing import med_ms, peak_of, time_runs
 
 BASE_FACES, BASE_SIZE, BASE_VIEWS, BASE_BATCH = 8192, 128, 4, 1
 MODES = (("hard", 1), ("soft smooth", 8))
@@ -126,7 +127,7 @@ class Scaling:
 
 
 def markdown(fits: list[dict], quick: bool) -> str:
-    from .render_bench import md_table
+    from .render_report import md_table
 
     b = base(quick)
     body = [[f["curve"], f["mode"], " / ".join(str(v) for v in f["values"]), " / ".join(f"{t:.1f}" for t in f["ms"]),

@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ..config.compose import given
+
 
 
 def check_writable(prog: str, argv: list[str], default: str = "outputs") -> None:
@@ -13,8 +15,8 @@ def check_writable(prog: str, argv: list[str], default: str = "outputs") -> None
     import os
     import tempfile
 
-    given = dict(a.split("=", 1) for a in argv if "=" in a)
-    target = Path(given.get("hydra.run.dir") or given.get("hydra.sweep.dir") or given.get("paths.output_dir") or default)
+    keys = given(argv)
+    target = Path(keys.get("hydra.run.dir") or keys.get("hydra.sweep.dir") or keys.get("paths.output_dir") or default)
     probe = target
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent  # the nearest existing folder decides whether target can be made

@@ -26,7 +26,10 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from ..runs.compare import CompareError, Side, _check_pair, compare, parse_count, to_markdown, write
+from ..runs.compare import compare
+from ..runs.compare_md import to_markdown, write
+from ..runs.paired_stats import parse_count
+from ..runs.sides import CompareError, Side, _check_pair
 from ..runs.folders import FolderError, find_runs, flatten, has_metrics, read_status
 
 

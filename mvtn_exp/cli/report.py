@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..runs.compare import CompareError
+from ..runs.sides import CompareError
 from ..runs.folders import FolderError, find_runs
 from ..engine.provenance import package_version
 from ..runs.report import TABLES_FILE, ReportError, load_tables, paper_markdown, report, to_markdown, write

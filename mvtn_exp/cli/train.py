@@ -28,7 +28,7 @@ from ..engine.trainer import TrainingDiverged, as_config, train
 from ..config.schema import TrainConfig, register_configs, resolve_device
 from ..models import pretrained
 from ..render import accel
-from ..config.compose import check_overrides
+from ..config.compose import check_overrides, given, override_key
 from .common import check_writable, mark_failed, os_error_text
 
 register_configs()
@@ -73,7 +73,7 @@ def resume_config(cfg, overrides: list[str], own_command: bool = False) -> Train
     saved = OmegaConf.create(state["config"])
     composed = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     for o in overrides:
-        key = o.lstrip("+~").split("=", 1)[0].split("@", 1)[0]
+        key = override_key(o)
         if key in ("ckpt_path", "hydra") or key.startswith(("hydra.", "hydra/")):
             continue
         if key == "experiment":
@@ -167,11 +167,9 @@ def resume_in_place(argv: list[str]) -> list[str]:
     """``ckpt_path=RUN/last.pt`` (single run, no ``hydra.run.dir``): go on in RUN itself, so its
     TensorBoard curves and train.log continue; this command's Hydra record goes to
     ``RUN/.hydra/resumed-<time>`` beside the original one. A missing file stops here, in one line."""
-    ckpt = next((a.split("=", 1)[1] for a in argv if a.startswith("ckpt_path=")), None)
+    ckpt = given(argv).get("ckpt_path")  # (Hydra's quoting removed: ckpt_path='a=1,b/last.pt')
     if not ckpt or ckpt == "null" or any(a in ("-m", "--multirun") for a in argv):
         return argv
-    if len(ckpt) > 1 and ckpt[0] == ckpt[-1] and ckpt[0] in "'\"":  # Hydra's quoting: ckpt_path='a=1,b/last.pt'
-        ckpt = ckpt[1:-1]
     if not Path(ckpt).is_file():
         print(f"mvtn-train: error: ckpt_path={ckpt}: no such checkpoint file", file=sys.stderr)
         sys.exit(2)
@@ -242,14 +240,14 @@ def claim_run_dir(argv: list[str]) -> None:
     resuming in place), before Hydra writes its record there: a new run into a folder holding a
     run's ``last.pt`` is refused unless ``overwrite=true``, and the folder's lock is taken for the
     run's life (a second run into a busy folder: one line, exit 2; ``engine/run_dir.py``)."""
-    given = dict(a.lstrip("+").split("=", 1) for a in argv if "=" in a)
-    folder = given.get("hydra.run.dir")
+    keys = given(argv)
+    folder = keys.get("hydra.run.dir")
     if folder is None or any(a in ("-m", "--multirun") for a in argv) or not distributed.from_env().main:
         return
     try:
         restarted = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")) > 0  # torchrun --max-restarts: its own run
-        if given.get("ckpt_path", "null") in ("null", "") and not restarted:
-            run_dir_state.check_new_run(folder, given.get("overwrite", "false").lower() in TRUE)
+        if keys.get("ckpt_path", "null") in ("null", "") and not restarted:
+            run_dir_state.check_new_run(folder, keys.get("overwrite", "false").lower() in TRUE)
         run_dir_state.lock(folder)
     except (run_dir_state.RunDirBusy, run_dir_state.RunDirTaken) as exc:
         print(f"mvtn-train: error: {exc}", file=sys.stderr)

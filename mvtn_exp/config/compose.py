@@ -109,6 +109,25 @@ def _choices(compose, config_name: str, overrides: list[str]) -> dict:
     return {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra")}
 
 
+def override_key(override: str) -> str:
+    """The dotted key of one command-line override: ``+a.b@pkg=1`` -> ``a.b`` (``+``, ``++``, ``~``
+    and a ``@package`` dropped; a flag without ``=`` is its own key)."""
+    return override.lstrip("+~").split("=", 1)[0].split("@", 1)[0]
+
+
+def given(argv: list[str]) -> dict[str, str]:
+    """The ``key=value`` overrides of a command line, ``{dotted key: value as typed}`` in order (the
+    last of a repeated key wins; one pair of matching quotes around a value removed, as Hydra does)."""
+    out = {}
+    for a in argv:
+        if "=" in a and not a.startswith("-"):
+            value = a.split("=", 1)[1]
+            if len(value) > 1 and value[0] == value[-1] and value[0] in "'\"":
+                value = value[1:-1]
+            out[override_key(a)] = value
+    return out
+
+
 def sweep_variants(overrides: list[str]) -> list[list[str]]:
     """The override lists to check for a multirun: the first value of every swept key, and each
     other value of each swept key on its own (so a bad value anywhere is caught, in linear time)."""
@@ -143,7 +162,7 @@ def unknown_added_key(override: str, schema, conf_dir: Path) -> Optional[str]:
     have (Hydra would accept it silently), else None. ``+group=option`` for a config group is fine."""
     if not override.startswith("+"):
         return None
-    key = override.lstrip("+").split("=", 1)[0].split("@", 1)[0]
+    key = override_key(override)
     if key.startswith(("hydra.", "hydra/")) or key == "hydra":
         return None
     parts = key.split(".")

@@ -1,8 +1,9 @@
 """One schema per option: a registry per component kind, option name -> its config dataclass.
 
-The kinds are ``selector``, ``point_encoder``, ``backbone`` and ``mvnet`` (``OPTIONS``). A
-component's own module defines its config, a dataclass subclassing the kind's base config (an
-``OptionConfig``) whose ``name`` defaults to the option's name, and registers it:
+The kinds are ``selector``, ``point_encoder``, ``backbone``, ``mvnet`` and ``dataset``
+(``OPTIONS``). A component's own module (a dataset's: ``data/config.py``) defines its config, a
+dataclass subclassing the kind's base config (an ``OptionConfig``) whose ``name`` defaults to the
+option's name, and registers it:
 
     @OPTIONS["mvnet"].register("my_net")
     @dataclass
@@ -15,8 +16,9 @@ so ``mvnet=my_net mvnet.k=3`` (a key of another option) is refused at compose ti
 option and the key (``foreign_key_message``). Every module of a kind's packages is imported before
 a registry is read (``load``), so a new option touches its own module and YAML only.
 
-The config class is the option's one entry: it builds the component (its ``build``; a model kind's
-class attribute ``network`` names the constructor, ``Options.lookup`` finds it by name) and says
+The config class is the option's one entry: it builds the component (its ``build``, a dataset's
+``build(split, progress)``; a model kind's class attribute ``network`` names the constructor,
+``Options.lookup`` finds it by name) and says
 what the rest of the config needs to know (a backbone's ``feature_dim``). ``list_options(kind)``:
 each option with the first sentence of its config's docstring (``mvtn-train --list KIND``).
 """
@@ -33,7 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 # kind -> the packages whose modules register its options
 PACKAGES = {"selector": ("mvtn_exp.selectors",), "point_encoder": ("mvtn_exp.models",),
-            "backbone": ("mvtn_exp.models",), "mvnet": ("mvtn_exp.models",)}
+            "backbone": ("mvtn_exp.models",), "mvnet": ("mvtn_exp.models",), "dataset": ("mvtn_exp.data",)}
 
 
 class Options(dict):

@@ -1,13 +1,13 @@
-"""Config schemas: one dataclass per config group, the top-level ``TrainConfig`` / ``EvalConfig``.
+"""Config schemas: one dataclass per config group and the top-level ``TrainConfig`` (``mvtn-eval``'s: ``eval_schema``).
 
 Hydra composes ``mvtn_exp/conf/train.yaml`` (group files under ``conf/<group>/``) on top of these
 schemas, registered in the ConfigStore by ``register_configs``: an unknown key or a wrong type
 fails at compose time. ``validate`` methods check values (names, ranges) and raise ``ValueError``
 naming the key and the allowed values. Angles are degrees; the world is Y-up.
 
-Group -> schema: dataset -> DatasetConfig, renderer -> RendererConfig (``render/config.py``),
-selector -> SelectorConfig, point_encoder -> PointEncoderConfig, backbone -> BackboneConfig,
-mvnet -> MVNetConfig, task -> TaskConfig, optim -> OptimConfig, logger -> LoggerConfig,
+Group -> schema: dataset -> DatasetConfig (``data/config.py``), renderer -> RendererConfig, selector
+-> SelectorConfig, point_encoder -> PointEncoderConfig, backbone -> BackboneConfig, mvnet -> MVNetConfig
+(``OPTION_KINDS``: a subclass per option), task -> TaskConfig, optim -> OptimConfig, logger -> LoggerConfig,
 paths -> PathsConfig; ``augment`` (AugmentConfig) has no group files: set ``augment.rotate=so3``.
 """
 from __future__ import annotations
@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from .checks import at_least, fraction, one_of  # noqa: F401 (re-exported)
-from ..data.config import DatasetConfig
+from .checks import at_least, one_of
+from ..data.config import DatasetConfig, SyntheticConfig
 from ..data.synthetic import ROTATIONS
 from ..models.backbones import BackboneConfig, SmallCNNConfig
 from ..models import pretrained
@@ -174,7 +174,7 @@ class TrainConfig:
     overwrite: bool = False
     sync_bn: bool = True
     objectives: list[str] = field(default_factory=list)
-    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    dataset: DatasetConfig = field(default_factory=SyntheticConfig)
     # renderer.image_size follows the top-level image_size (an interpolation, resolved at compose time);
     # training defaults to soft smooth rendering (conf/renderer/soft.yaml: camera gradients for G)
     renderer: RendererConfig = field(default_factory=lambda: RendererConfig(
@@ -231,103 +231,12 @@ class TrainConfig:
         return self
 
 
-@dataclass
-class RotationEvalConfig:
-    """Rotation robustness: each test shape turned about Y by an angle uniform in [-theta, theta]
-    (degrees), ``repeats`` times with seeds ``seed, seed+1, ...``."""
-
-    thetas: list[float] = field(default_factory=lambda: [90.0, 180.0])
-    repeats: int = 10
-    seed: int = 0
-
-
-@dataclass
-class OcclusionEvalConfig:
-    """Occlusion robustness: cut each shape at ``ratio`` from each of +-X, +-Y, +-Z. ``frame``:
-    ``unit_sphere`` (the paper's code: remove ``sign * x > 1 - 2 ratio`` of the unit sphere,
-    the same plane for every shape) or ``extent`` (remove ``ratio`` of each shape's own extent)."""
-
-    ratios: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.2, 0.3, 0.5, 0.75])
-    seed: int = 0
-    frame: str = "unit_sphere"
-
-
-@dataclass
-class RetrievalEvalConfig:
-    """Retrieval: features before the classifier, LFDA to ``dim`` (fitted on the database), every
-    test shape queries the whole official train split (val included where it was carved out of
-    train); ``k``: LFDA's local-scaling neighbour, ``scaling``: class (Sugiyama's, default) | all
-    (the k-th neighbour among all samples, the former default); ``list_length`` for SHREC-style
-    metrics."""
-
-    dim: int = 128
-    k: int = 7
-    scaling: str = "class"
-    list_length: int = 1000
-
-
-EVAL_TASKS = ("classification", "retrieval")
-ROBUSTNESS = ("none", "rotation", "occlusion")
-
-
-@dataclass
-class EvalConfig:
-    """``mvtn-eval ckpt=PATH``: rebuild the model from the checkpoint's config, evaluate ``split``.
-
-    ``task``: classification | retrieval; ``robustness``: none | rotation | occlusion (with
-    classification); ``views``: also analyse the predicted views (per-class histograms, cameras
-    around a shape, accuracy with per-class-averaged views). ``device``: auto (CUDA when available, else CPU), cpu, cuda[:N], or null for the checkpoint's; ``batch_size``: null keeps the checkpoint's. ``root``:
-    override the dataset root stored in the checkpoint (data moved); ``paths.output_dir``: where
-    the run dir goes (``<output_dir>/eval/runs/<time>-<pid>``)."""
-
-    ckpt: Optional[str] = None
-    split: str = "test"
-    task: str = "classification"
-    robustness: str = "none"
-    views: bool = False
-    device: Optional[str] = "auto"
-    batch_size: Optional[int] = None
-    root: Optional[str] = None
-    progress: bool = True
-    rotation: RotationEvalConfig = field(default_factory=RotationEvalConfig)
-    occlusion: OcclusionEvalConfig = field(default_factory=OcclusionEvalConfig)
-    retrieval: RetrievalEvalConfig = field(default_factory=RetrievalEvalConfig)
-    paths: PathsConfig = field(default_factory=PathsConfig)  # run dirs go under paths.output_dir/eval
-
-    def validate(self) -> "EvalConfig":
-        if not self.ckpt:
-            raise ValueError("ckpt: missing; pass ckpt=PATH to a best.pt / last.pt written by mvtn-train")
-        one_of("split", self.split, ("train", "val", "test"))
-        one_of("task", self.task, EVAL_TASKS)
-        one_of("robustness", self.robustness, ROBUSTNESS)
-        if self.device is not None:
-            check_device("device", self.device)
-        if self.task == "retrieval" and self.split == "train":
-            raise ValueError("split=train: retrieval queries the train split as its database; use split=test or val")
-        if self.task == "retrieval" and self.robustness != "none":
-            raise ValueError(f"robustness={self.robustness}: robustness is evaluated with task=classification")
-        if self.batch_size is not None:
-            at_least("batch_size", self.batch_size, 1)
-        at_least("rotation.repeats", self.rotation.repeats, 1)
-        for t in self.rotation.thetas:
-            if not 0 <= t <= 180:
-                raise ValueError(f"rotation.thetas: {t} is outside [0, 180] degrees")
-        for r in self.occlusion.ratios:
-            fraction("occlusion.ratios", r)
-        one_of("occlusion.frame", self.occlusion.frame, ("unit_sphere", "extent"))
-        at_least("retrieval.dim", self.retrieval.dim, 1)
-        at_least("retrieval.k", self.retrieval.k, 1)
-        one_of("retrieval.scaling", self.retrieval.scaling, ("class", "all"))
-        at_least("retrieval.list_length", self.retrieval.list_length, 1)
-        return self
-
-
 GROUPS = {"dataset": DatasetConfig, "renderer": RendererConfig, "selector": SelectorConfig,
           "point_encoder": PointEncoderConfig, "backbone": BackboneConfig, "mvnet": MVNetConfig,
           "task": TaskConfig, "optim": OptimConfig, "logger": LoggerConfig, "paths": PathsConfig}
 
 
-OPTION_KINDS = ("selector", "point_encoder", "backbone", "mvnet")  # groups with one schema per option (config/options.py)
+OPTION_KINDS = ("selector", "point_encoder", "backbone", "mvnet", "dataset")  # one schema per option: options.py
 
 
 def _option_schemas(data: dict, cfg) -> dict:
@@ -386,6 +295,8 @@ def register_configs() -> None:
     for kind in OPTION_KINDS:  # the chosen option's schema merges in (a subclass of the kind's base)
         train[kind] = OmegaConf.structured(GROUPS[kind])
     cs.store(name="train_schema", node=train)
+    from .eval_schema import EvalConfig
+
     cs.store(name="eval_schema", node=EvalConfig)
     for kind in OPTION_KINDS:
         for name, option in OPTIONS[kind].items():

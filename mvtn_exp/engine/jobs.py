@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 
 from ..config.schema import resolve_device
 from ..runtime import distributed
+from ..runtime.dotted import lookup
 from . import run_dir as run_dir_state
 
 
@@ -102,9 +103,7 @@ def objective_values(run_dir: Path, names) -> list[float] | None:
     metrics = json.loads(path.read_text())
     out = []
     for name in names:
-        value = metrics
-        for part in str(name).split("."):
-            value = value.get(part) if isinstance(value, dict) else None
+        value = lookup(metrics, str(name))
         if value is None:
             return None
         out.append(float(value))

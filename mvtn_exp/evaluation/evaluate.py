@@ -11,7 +11,8 @@ import torch
 from ..data.datasets import build_dataset
 from ..model import build_mvtn
 from ..render import accel
-from ..config.schema import EvalConfig, TrainConfig, resolve_device
+from ..config.schema import TrainConfig, resolve_device
+from ..config.eval_schema import EvalConfig
 from ..tasks import classification
 from ..runtime import checkpoint
 from . import modes as eval_modes

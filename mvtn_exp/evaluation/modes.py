@@ -15,7 +15,8 @@ from tqdm.auto import tqdm
 
 from ..data.datasets import build_dataset
 from ..data.datasets import retrieval_report as dataset_retrieval_report
-from ..config.schema import EvalConfig, TrainConfig
+from ..config.schema import TrainConfig
+from ..config.eval_schema import EvalConfig
 from ..tasks import classification, retrieval, robustness
 from ..viz.plots import occlusion_png
 from ..engine.trainer import eval_loader

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from . import tiles
+from . import nearest, tiles
 from .accel import fused
 from .edge_distance import barycentric_signs, covers, edge_function, segment_sqdist, signed_sqdist
 from .ops import take
@@ -256,7 +256,7 @@ def face_boxes(cols: torch.Tensor, image: torch.Tensor, radius: float, H: int, W
 
 
 def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int,
-                 ranking: "soft_search.SoftRanking | None" = None, overflow=None) -> tiles.Selection:
+                 ranking: "soft_search.SoftRanking | None" = None, overflow=None) -> nearest.Selection:
     """K best faces per pixel among faces whose triangle is within ``blur_radius`` (NDC).
 
     Hard mode (``blur_radius == 0``): the K nearest covering faces. Soft mode: ``soft_search.search``
@@ -272,24 +272,24 @@ def search_faces(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: flo
                                       max_candidates=max_candidates, ranking=ranking, overflow=overflow)
         num_pixels = pf.num_images * H * W
         if K > 1:
-            return tiles.merge(list(_hard_picks(pf, 0, pf.cols.shape[1], H, W, K, tile_size, max_candidates, num_pixels,
+            return nearest.merge(list(_hard_picks(pf, 0, pf.cols.shape[1], H, W, K, tile_size, max_candidates, num_pixels,
                                                 overflow)), K, pf.cols.device)
-        # K = 1: winners of runs of face-views combine (``tiles.nearest_one``), so the per-face work
+        # K = 1: winners of runs of face-views combine (``nearest.nearest_one``), so the per-face work
         # (boxes, face tables, row spans) is done a slice at a time: memory bounded for any batch
         n, step = pf.cols.shape[1], max(1, max_candidates // 8)
         picks = [p for a in range(0, n, step) for p in _hard_picks(pf, a, min(n, a + step), H, W, 1, tile_size,
                                                                       max_candidates, num_pixels, overflow)]
         if len(picks) != 1:
-            picks = [tiles.nearest_one(*(torch.cat(t) for t in zip(*picks)), num_pixels)] if picks else []
+            picks = [nearest.nearest_one(*(torch.cat(t) for t in zip(*picks)), num_pixels)] if picks else []
         empty = torch.zeros(0, dtype=torch.long, device=pf.cols.device)
         pix, _, best = picks[0] if picks else (empty, None, empty)
-        return tiles.Selection(pix, best.unsqueeze(1), used=len(pix))  # (every pixel's one slot is used)
+        return nearest.Selection(pix, best.unsqueeze(1), used=len(pix))  # (every pixel's one slot is used)
 
 
 def _hard_picks(pf: ProjectedFaces, start: int, stop: int, H: int, W: int, K: int, tile_size: int, max_candidates: int,
                 num_pixels: int, overflow=None):
     """The nearest covering faces among face-views ``start:stop``, per candidate chunk: K = 1
-    ``tiles.nearest_one`` triples (chunks of consecutive faces), else ``tiles.select_nearest``
+    ``nearest.nearest_one`` triples (chunks of consecutive faces), else ``nearest.select_nearest``
     selections (whole pixels per chunk)."""
     cols = pf.cols[:, start:stop]
     boxes = face_boxes(cols, None, 0.0, H, W)
@@ -310,8 +310,8 @@ def _hard_picks(pf: ProjectedFaces, start: int, stop: int, H: int, W: int, K: in
         prim = cand.prim.index_select(0, inside)
         depth = 1.0 / inverse_depth(table, prim, [l.index_select(0, inside) for l in lam]).clamp(min=1e-12)
         pix, ids = cand.pix.index_select(0, inside), fv.index_select(0, prim)
-        yield (tiles.nearest_one(pix, depth, ids, num_pixels) if K == 1
-               else tiles.select_nearest(pix, depth, ids, K, num_pixels))
+        yield (nearest.nearest_one(pix, depth, ids, num_pixels) if K == 1
+               else nearest.select_nearest(pix, depth, ids, K, num_pixels))
 
 
 @fused
@@ -333,7 +333,7 @@ def _depth_and_bary(X, Y, Z, px, py, valid, need_bary: bool):
     return zbuf, (torch.stack([zk / zsum for zk in zinv], -1) if need_bary else None)
 
 
-def face_fragments(pf: ProjectedFaces, sel: tiles.Selection, *, H: int, W: int, need_bary: bool,
+def face_fragments(pf: ProjectedFaces, sel: nearest.Selection, *, H: int, W: int, need_bary: bool,
                    need_dist: bool, interior_edge: torch.Tensor | None, need_depth: bool = True) -> Fragments:
     """Differentiable barycentrics / depth / signed distance for the selected (pixel, face) pairs.
 

@@ -10,13 +10,13 @@ from dataclasses import dataclass
 
 import torch
 
-from . import tiles
+from . import nearest, tiles
 from .ops import take
 
 
 def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive: torch.Tensor, *, H: int, W: int,
                   K: int, radius: float, num_images: int, tile_size: int, max_candidates: int,
-                  overflow=None) -> tiles.Selection:
+                  overflow=None) -> nearest.Selection:
     """xy ``[N, 2]`` NDC, z ``[N]`` depth, image ``[N]``, alive ``[N]`` bool -> Selection over point-views."""
     with torch.no_grad():
         pv = torch.nonzero(alive).squeeze(1)
@@ -37,9 +37,9 @@ def search_points(xy: torch.Tensor, z: torch.Tensor, image: torch.Tensor, alive:
             d2 = (cand.x - x.index_select(0, cand.prim)) ** 2 + (cand.y - y.index_select(0, cand.prim)) ** 2
             keep = torch.nonzero(d2 < r2).squeeze(1)
             c = cand.prim.index_select(0, keep)
-            picks.append(tiles.select_nearest(cand.pix.index_select(0, keep), zz.index_select(0, c), pv.index_select(0, c), K,
+            picks.append(nearest.select_nearest(cand.pix.index_select(0, keep), zz.index_select(0, c), pv.index_select(0, c), K,
                                               num_images * H * W))
-        return tiles.merge(picks, K, xy.device)
+        return nearest.merge(picks, K, xy.device)
 
 
 @dataclass
@@ -55,7 +55,7 @@ class PackedSlots:
     K: int
 
     @staticmethod
-    def of(sel: tiles.Selection) -> "PackedSlots":
+    def of(sel: nearest.Selection) -> "PackedSlots":
         slot = sel.occupied()
         return PackedSlots(slot, sel.prim.reshape(-1).index_select(0, slot), sel.pix, sel.prim.shape[1])
 

@@ -15,18 +15,25 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint
 
 from ..data.shapes import Meshes, PointClouds, host_counts, subset
-from . import accel, budget, lod, mesh_raster, point_raster, shading, soft_search, tiles
+from . import accel, budget, lod, mesh_raster, nearest, point_raster, shading, soft_search
 from .cameras import Cameras, camera_to_ndc, to_camera_packed
+from .compose import Compose
 from .config import RendererConfig
 from .ops import take, weighted3
 from .precision import LOW_PRECISION, deterministic_algorithms, full_precision
 from .topology import edge_neighbours
 
 
-# flat shading, one colour per face and view: "seen" shades each face-view that some pixel shows
-# once (never more than the face-views or the pixels); "all" every face-view, "pairs" every
-# (pixel, slot) pair (the same numbers; tests compare the three)
-SHADE_FLAT = "seen"
+def seen_face_views(fv: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat shading's work list: the face-views (indices ``< n``) that some pixel slot ``fv`` shows,
+    each once, and each slot's position in that list; found with a mark per face-view (linear, no
+    sort), so shading costs never more than the face-views or the pixels."""
+    seen = torch.zeros(n, dtype=torch.bool, device=fv.device)
+    seen[fv.reshape(-1)] = True
+    which = torch.nonzero(seen).squeeze(1)
+    slot = torch.empty(n, dtype=torch.long, device=fv.device)
+    slot[which] = torch.arange(len(which), device=fv.device)
+    return which, take(slot, fv)
 
 
 @dataclass
@@ -129,10 +136,10 @@ class MultiViewRenderer(nn.Module):
 
     def _compose(self, parts: list, N: int, HW: int, ref) -> tuple[torch.Tensor, torch.Tensor]:
         """Scatter the groups' active-pixel ``(pix, rgb, alpha)`` into dense channel-first images ``[N, 3, HW]``
-        and alpha ``[N * HW]`` (see ``_Compose``)."""
+        and alpha ``[N * HW]`` (see ``compose.Compose``)."""
         if not parts:
             parts = [(ref.new_zeros(0, dtype=torch.long), ref.new_zeros(0, 3), ref.new_zeros(0))]
-        return _Compose.apply(self._background(ref), N, HW, *(t for part in parts for t in part))
+        return Compose.apply(self._background(ref), N, HW, *(t for part in parts for t in part))
 
     def _draws(self, B, ref) -> "Draws":
         """The batch's light directions (unit ``[B, 3]`` world, None: towards each camera) and albedos
@@ -291,21 +298,8 @@ class MultiViewRenderer(nn.Module):
             normals = weighted3(frag.bary, take(vn, take(faces, f)))
             points = weighted3(frag.bary, take(tri, f))
             return shade(fv, normals, points)
-        # flat: one colour per face and view (SHADE_FLAT); the seen face-views are found with a mark
-        # per face-view (linear, no sort) and each pixel takes its face-view's colour
-        if SHADE_FLAT == "pairs":
-            f = torch.div(fv, M, rounding_mode="floor")
-            return shade(fv, take(fn, f), take(tri.mean(1), f))
-        n = len(faces) * M
-        if SHADE_FLAT == "all":
-            which, slot_of = torch.arange(n, device=verts.device), fv
-        else:
-            seen = torch.zeros(n, dtype=torch.bool, device=verts.device)
-            seen[fv.reshape(-1)] = True
-            which = torch.nonzero(seen).squeeze(1)
-            slot = torch.empty(n, dtype=torch.long, device=verts.device)
-            slot[which] = torch.arange(len(which), device=verts.device)
-            slot_of = take(slot, fv)
+        # flat: one colour per face and view, shaded once per seen face-view; each pixel takes its own
+        which, slot_of = seen_face_views(fv, len(faces) * M)
         f = torch.div(which, M, rounding_mode="floor")
         return take(shade(which, take(fn, f), take(tri.mean(1), f)), slot_of)
 
@@ -341,47 +335,6 @@ class MultiViewRenderer(nn.Module):
         return packed.pix, rgb, alpha, stats
 
 
-def _channel_base(pix: torch.Tensor, HW: int) -> torch.Tensor:
-    """Flat pixel ``[P]`` (image i, pixel p) -> flat index of its channel 0 in ``[N, 3, HW]`` images:
-    (3 i + c) HW + p = pix + 2 i HW + c HW, channel c at ``+ c * HW``."""
-    return pix + 2 * HW * torch.div(pix, HW, rounding_mode="floor")
-
-
-class _Compose(torch.autograd.Function):
-    """Active pixels of the groups -> dense images ``[N, 3, H, W]`` (background elsewhere) and alpha
-    ``[N, 1, H, W]`` (0 elsewhere), N = B * M. Called as ``apply(background, N, HW, pix_1, rgb_1,
-    alpha_1, pix_2, ...)``: per group flat pixel indices ``[P_g]`` (into the whole batch), rgb
-    ``[P_g, 3]``, alpha ``[P_g]``, written straight into the images (no concatenated copy). The
-    backward pass gathers the images' gradient at the active pixels: it keeps only the ``pix``
-    (8 bytes per active pixel)."""
-
-    @staticmethod
-    def forward(ctx, background, N: int, HW: int, *parts):
-        ref = parts[1]
-        img = torch.empty(N, 3, HW, dtype=ref.dtype, device=ref.device)
-        img.copy_(background.to(ref.dtype)[:, None].expand(N, 3, HW))
-        a = torch.zeros(N * HW, dtype=ref.dtype, device=ref.device)
-        flat = img.view(-1)
-        for pix, rgb, alpha in zip(parts[0::3], parts[1::3], parts[2::3]):
-            base = _channel_base(pix, HW)
-            for c in range(3):
-                flat.index_copy_(0, base + c * HW, rgb[:, c])
-            a.index_copy_(0, pix, alpha)
-        ctx.save_for_backward(*parts[0::3])
-        ctx.HW = HW
-        return img, a
-
-    @staticmethod
-    def backward(ctx, g_img, g_alpha):
-        HW = ctx.HW
-        flat, g_a = g_img.reshape(-1), g_alpha.reshape(-1)
-        grads = [None, None, None]
-        for pix in ctx.saved_tensors:
-            base = _channel_base(pix, HW)
-            grads += [None, torch.stack([flat.index_select(0, base + c * HW) for c in range(3)], 1), g_a.index_select(0, pix)]
-        return tuple(grads)
-
-
 @dataclass
 class Draws:
     """A call's light directions ``[B, 3]`` (None: towards each camera) and albedos ``[B, 3]``."""
@@ -399,6 +352,6 @@ def add_stats(total: dict, part: dict) -> None:
         if key not in total:
             total[key] = value
         elif key == "max_candidates":
-            total[key] = tiles.largest([total[key], value])
+            total[key] = nearest.largest([total[key], value])
         else:
             total[key] = total[key] + value

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from . import accel, tiles
+from . import accel, nearest, tiles
 from .accel import fused
 from .edge_distance import covers
 from .mesh_raster import (SMALL_BOX_HARD, TABLE_CORNERS, ProjectedFaces, barycentrics, face_boxes, face_fragments,
@@ -85,7 +85,7 @@ class _Faces:
 
 
 def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, tile_size: int, max_candidates: int,
-           ranking: SoftRanking, overflow=None) -> tiles.Selection:
+           ranking: SoftRanking, overflow=None) -> nearest.Selection:
     """The soft search (see the module docstring) -> Selection with slots ``[P, K]`` and the rest."""
     with torch.no_grad():
         dilated = face_boxes(pf.cols, None, blur_radius, H, W)
@@ -104,7 +104,7 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
         chunks = dict(H=H, W=W, tile_size=tile_size, max_candidates=max_candidates, dtype=cols.dtype, overflow=overflow)
         if ranking.by_depth:
             pix, prim, depth, _ = _near(faces, dilated, blur_radius, None, ranking, chunks, keep_inside=True, widest=widest)
-            return tiles.select_nearest(pix, depth, prim, K, num_pixels)
+            return nearest.select_nearest(pix, depth, prim, K, num_pixels)
         pix1, prim1, zl1, miss1 = _covering(faces, ranking, chunks)
         miss = torch.zeros(num_pixels, dtype=cols.dtype, device=cols.device).index_add_(0, pix1, miss1)
         best = torch.full((num_pixels,), float("-inf"), dtype=cols.dtype, device=cols.device).scatter_reduce_(0, pix1, zl1, "amax")
@@ -126,7 +126,7 @@ def search(pf: ProjectedFaces, *, H: int, W: int, K: int, blur_radius: float, ti
         other = ~slot_ok & rest_ok
         n_ok, n_other = tiles.read_ints(slot_ok.sum(), other.sum())
         ok = tiles.where_true(slot_ok, n_ok)
-        sel = tiles.select_nearest(pix.index_select(0, ok), score.index_select(0, ok), prim.index_select(0, ok), K,
+        sel = nearest.select_nearest(pix.index_select(0, ok), score.index_select(0, ok), prim.index_select(0, ok), K,
                                    num_pixels, keep_rest=True, rest_mask=rest_ok.index_select(0, ok))
         sel.base_log_miss = torch.where(full.index_select(0, sel.pix), miss.index_select(0, sel.pix), 0.0)
         other = tiles.where_true(other, n_other)
@@ -322,7 +322,7 @@ def saturated_log_miss(dtype: torch.dtype) -> float:
     return math.log(torch.finfo(dtype).eps) - 1.0
 
 
-def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, slots_log_miss: torch.Tensor, ranking: SoftRanking, *,
+def rest_log_miss(pf: ProjectedFaces, sel: nearest.Selection, slots_log_miss: torch.Tensor, ranking: SoftRanking, *,
                   H: int, W: int) -> torch.Tensor:
     """Coverage of the candidates beyond the K slots: ``sum log(1 - p)`` per active pixel ``[P]``.
 
@@ -350,16 +350,16 @@ def rest_log_miss(pf: ProjectedFaces, sel: tiles.Selection, slots_log_miss: torc
         keep = torch.nonzero(rim.index_select(0, owner)).squeeze(1)
     if len(keep) == 0:
         return out
-    rest = tiles.Selection(sel.rest_pix.index_select(0, keep), sel.rest_prim.index_select(0, keep).unsqueeze(1))
+    rest = nearest.Selection(sel.rest_pix.index_select(0, keep), sel.rest_prim.index_select(0, keep).unsqueeze(1))
     d = face_fragments(pf, rest, H=H, W=W, need_bary=False, need_dist=True, interior_edge=ranking.interior,
                        need_depth=False).dist[:, 0]
     return out.index_add(0, owner.index_select(0, keep), torch.nn.functional.logsigmoid(d / ranking.sigma))
 
 
-def packed_slots(sel: tiles.Selection) -> tuple[tiles.Selection, torch.Tensor]:
+def packed_slots(sel: nearest.Selection) -> tuple[nearest.Selection, torch.Tensor]:
     """The used slots of ``sel`` one per row: (Selection with pix ``[S]``, prim ``[S, 1]``; owner ``[S]``,
     the active-pixel index of each row). Soft mode shades and blends only these."""
     K = sel.prim.shape[1]
     used = sel.occupied()
     owner = torch.div(used, K, rounding_mode="floor")
-    return tiles.Selection(sel.pix.index_select(0, owner), sel.prim.reshape(-1).index_select(0, used).unsqueeze(1)), owner
+    return nearest.Selection(sel.pix.index_select(0, owner), sel.prim.reshape(-1).index_select(0, used).unsqueeze(1)), owner

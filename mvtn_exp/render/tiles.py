@@ -1,8 +1,8 @@
-"""Screen tiles: primitives' pixel boxes -> (primitive, pixel) candidates -> K nearest per pixel.
+"""Screen tiles: primitives' pixel boxes -> (primitive, pixel) candidates, in chunks under a budget.
 
 Shared by the mesh and the point rasterizer. Everything here runs without autograd: it only
-decides *which* primitives cover *which* pixels; callers recompute the differentiable quantities
-for the winners.
+decides *which* primitives cover *which* pixels; ``nearest.py`` keeps the K nearest of each
+pixel's candidates, and callers recompute the differentiable quantities for the winners.
 
 How a scene is searched:
 1. each primitive (a face or point in one view) gives an inclusive pixel box, clipped to the image;
@@ -12,11 +12,13 @@ How a scene is searched:
    ``tile_size`` square screen tiles (packed bins: a tile holds as many primitives as cover it, so
    nothing is ever dropped) and processed in chunks of whole tiles, each under the budget; a
    single tile over budget is processed alone and reported once with a warning;
-4. per pixel, the K candidates of smallest score win (ties: smaller primitive index first); the
-   score is the depth in hard mode and minus the blend logit in soft mode.
+4. per pixel, the K candidates of smallest score win (``nearest.select_nearest``; ties: smaller
+   primitive index first); the score is the depth in hard mode and minus the blend logit in soft mode.
 
 Pixel convention: image row i (top = 0), column j; pixel centre in NDC is
 ``x = (2j + 1) / W - 1``, ``y = 1 - (2i + 1) / H``. Flat pixel index: ``(image * H + i) * W + j``.
+The host-read helpers (``read_ints``, ``where_true`` and its CUDA form on any device, ``gpu_path``)
+live here too: the search of both modules reads its sizes through them.
 """
 from __future__ import annotations
 
@@ -43,34 +45,6 @@ class PixelBoxes:
 
     def sizes(self) -> torch.Tensor:
         return (self.j1 - self.j0 + 1).clamp(min=0) * (self.i1 - self.i0 + 1).clamp(min=0)
-
-
-@dataclass
-class Selection:
-    """K best primitives for every pixel that has at least one.
-
-    pix: ``[P]`` flat pixel index, ascending; prim: ``[P, K]`` primitive index, -1 in unused slots.
-    rest_pix, rest_prim: ``[R]`` the candidates that did not get a slot (only when asked for:
-    soft coverage counts them); most: the largest number of candidates any pixel had (0 if empty; a
-    0-dim tensor when counted on the device, read only when asked);
-    base_log_miss: ``[P]`` soft coverage the search counted itself and left out of the slots and the
-    rest, as a constant ``sum log(1 - p)`` (fully covered pixels: their covering faces' bound).
-    used: the number of used slots when the search knows it on the host (else None: counted when asked).
-    """
-
-    pix: torch.Tensor
-    prim: torch.Tensor
-    rest_pix: torch.Tensor | None = None
-    rest_prim: torch.Tensor | None = None
-    most: int | torch.Tensor = 0
-    base_log_miss: torch.Tensor | None = None
-    used: int | None = None
-
-    def occupied(self) -> torch.Tensor:
-        """Flat indices into ``prim.view(-1)`` of the used slots ``[S]``, ascending (a host read
-        only when ``used`` is unknown)."""
-        mask = self.prim.reshape(-1) >= 0
-        return torch.nonzero(mask).squeeze(1) if self.used is None else where_true(mask, self.used)
 
 
 def pixel_boxes(xmin, xmax, ymin, ymax, image, H: int, W: int) -> PixelBoxes:
@@ -280,7 +254,7 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
     every pixel's candidates lie in exactly one chunk.
 
     by_primitive: chunks are runs of consecutive primitives instead (a pixel's candidates may then
-    span chunks): for a search whose per-chunk winners combine (``nearest_one``), it skips the
+    span chunks): for a search whose per-chunk winners combine (``nearest.nearest_one``), it skips the
     binning into tiles, the dearest step of a dense scene.
     overflow: called with the candidate count of a tile (or primitive box) over ``max_candidates``
     (an explicit memory budget raises there); None: it is processed alone, with one warning.
@@ -305,12 +279,7 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
             warnings.warn(f"renderer: one primitive's box holds {largest} candidates, over the chunk budget "
                           f"max_candidates={max_candidates}; it is processed alone (budget grown, nothing dropped). "
                           "Raise max_candidates to silence this.", RuntimeWarning, stacklevel=3)
-        start = 0
-        while start < len(prim):  # each run within the budget; a single primitive over it alone
-            base = int(ends[start - 1]) if start else 0
-            stop = max(start + 1, int(torch.searchsorted(ends, base + max_candidates, right=True)))
-            yield _enumerate(boxes, prim[start:stop], H, W, span, dtype, None, small_box)
-            start = stop
+        yield from _primitive_runs(boxes, prim, ends, H, W, max_candidates, span, dtype, small_box)
         return
     tiles, owner, tile_id, num_tiles = _split_box_by_tiles(boxes, tile_size, H, W)
     cum = _tile_counts(tiles, tile_id, num_tiles, small_box)  # (the chunks' counts below: no read per chunk)
@@ -326,6 +295,26 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
             RuntimeWarning,
             stacklevel=3,
         )
+    yield from _tile_runs(tiles, owner, cum, num_tiles, H, W, max_candidates, span, dtype, small_box)
+
+
+def _primitive_runs(boxes: PixelBoxes, prim: torch.Tensor, ends: torch.Tensor, H: int, W: int, max_candidates: int,
+                    span, dtype, small_box: int) -> Iterator[tuple[Candidates, Candidates]]:
+    """``candidate_chunks(by_primitive=True)``'s chunks: runs of consecutive primitives ``prim`` (the
+    non-empty boxes; ``ends``: their cumulative sizes), each within ``max_candidates``; a single
+    primitive over it alone."""
+    start = 0
+    while start < len(prim):  # each run within the budget; a single primitive over it alone
+        base = int(ends[start - 1]) if start else 0
+        stop = max(start + 1, int(torch.searchsorted(ends, base + max_candidates, right=True)))
+        yield _enumerate(boxes, prim[start:stop], H, W, span, dtype, None, small_box)
+        start = stop
+
+
+def _tile_runs(tiles: PixelBoxes, owner: torch.Tensor, cum: list[list[int]], num_tiles: int, H: int, W: int,
+               max_candidates: int, span, dtype, small_box: int) -> Iterator[tuple[Candidates, Candidates]]:
+    """``candidate_chunks``' chunks of whole tiles (``_split_box_by_tiles``, cumulative counts
+    ``cum`` from ``_tile_counts``), each within ``max_candidates``; a single tile over it alone."""
     start = 0  # the first tile of the chunk being gathered
     for t in range(num_tiles):
         base = cum[1][start - 1] if start else 0
@@ -335,101 +324,3 @@ def candidate_chunks(boxes: PixelBoxes, H: int, W: int, tile_size: int, max_cand
                 sel = torch.arange(lo[0], cum[0][t], device=tiles.j0.device)
                 yield _enumerate(tiles, sel, H, W, span, dtype, owner, small_box, [c[t] - a for c, a in zip(cum[1:], lo[1:])])
             start = t + 1
-
-
-def _sortable(score: torch.Tensor) -> torch.Tensor:
-    """float32 ``[C]`` -> int64 in [0, 2^32) with the same order (negative values included)."""
-    bits = score.contiguous().view(torch.int32).long()
-    return (bits ^ ((bits >> 31) & 0x7FFFFFFF)) + (1 << 31)
-
-
-def select_nearest(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, K: int, num_pixels: int,
-                   keep_rest: bool = False, rest_mask: torch.Tensor | None = None,
-                   slot_mask: torch.Tensor | None = None) -> Selection:
-    """K candidates of smallest ``score`` per pixel (ties: smaller ``prim`` first).
-
-    pix, score, prim: ``[C]`` candidates (score any finite float: depth in hard mode, minus the
-    blend logit in soft mode), enumerated in ascending ``prim`` order within each pixel.
-    keep_rest: also return the candidates beyond the K slots (``rest_pix``, ``rest_prim``), only
-    those where ``rest_mask`` ``[C]`` is True when given. slot_mask: ``[C]``, False for candidates
-    that may not hold a slot (they must rank after every candidate that may, in their pixel).
-    Returns a Selection over the pixels with at least one candidate.
-    """
-    device = pix.device
-    empty = torch.zeros(0, dtype=torch.long, device=device)
-    if len(pix) == 0:
-        return Selection(empty, torch.zeros(0, K, dtype=torch.long, device=device), empty if keep_rest else None,
-                         empty if keep_rest else None, 0, used=0)
-    if K == 1 and not keep_rest:
-        active, _, best = nearest_one(pix, score, prim, num_pixels)
-        return Selection(active, best.unsqueeze(1), used=len(active))
-    if score.dtype == torch.float32:
-        # one int64 key (pixel, order-preserving score bits): a single sort
-        order = torch.sort((pix << 32) | _sortable(score), stable=True).indices
-    else:
-        order = torch.sort(score, stable=True).indices
-        order = order[torch.sort(pix[order], stable=True).indices]
-    sp = pix.index_select(0, order)
-    first = torch.ones_like(sp, dtype=torch.bool)
-    first[1:] = sp[1:] != sp[:-1]
-    idx = torch.arange(len(sp), device=device)
-    seg_start = torch.where(first, idx, torch.zeros_like(idx)).cummax(0).values
-    rank = idx - seg_start
-    keep = rank < K
-    if slot_mask is not None:
-        keep &= slot_mask.index_select(0, order)
-    seg = torch.cumsum(first.long(), 0) - 1
-    rest = None
-    if keep_rest:
-        rest = ~keep if rest_mask is None else ~keep & rest_mask.index_select(0, order)
-    # the sizes below in one host read
-    n_active, n_kept, n_rest = read_ints(first.sum(), keep.sum(), (rest if keep_rest else keep[:0]).sum())
-    active = sp.index_select(0, where_true(first, n_active))
-    out = torch.full((n_active * K,), -1, dtype=torch.long, device=device)
-    kept = where_true(keep, n_kept)
-    out.index_copy_(0, seg.index_select(0, kept) * K + rank.index_select(0, kept), prim.index_select(0, order.index_select(0, kept)))
-    rest_pix = rest_prim = None
-    if keep_rest:
-        rest = where_true(rest, n_rest)
-        rest_pix, rest_prim = sp.index_select(0, rest), prim.index_select(0, order.index_select(0, rest))
-    return Selection(active, out.view(-1, K), rest_pix, rest_prim, rank.max() + 1, used=n_kept)
-
-
-def nearest_one(pix: torch.Tensor, score: torch.Tensor, prim: torch.Tensor, num_pixels: int):
-    """Per pixel the candidate of smallest ``score`` (ties: smaller ``prim``): ``(pix, score, prim)``,
-    each ``[P]``, pixels ascending. Winners of disjoint candidate sets, concatenated and passed
-    through again, give the winners of their union (so chunks of any partition combine)."""
-    zmin = torch.full((num_pixels,), float("inf"), dtype=score.dtype, device=pix.device)
-    zmin.scatter_reduce_(0, pix, score, "amin")
-    win = score == zmin.index_select(0, pix)
-    none = torch.iinfo(torch.long).max
-    best = torch.full((num_pixels,), none, dtype=torch.long, device=pix.device)
-    best.scatter_reduce_(0, pix[win], prim[win], "amin")
-    active = torch.nonzero(best != none).squeeze(1)
-    return active, zmin.index_select(0, active), best.index_select(0, active)
-
-
-def largest(values: list):
-    """The largest of ints and 0-dim tensors, without reading a tensor on the host."""
-    out = max((v for v in values if not torch.is_tensor(v)), default=0)
-    for v in values:
-        if torch.is_tensor(v):
-            out = torch.clamp(v, min=out) if not torch.is_tensor(out) else torch.maximum(out, v)
-    return out
-
-
-def merge(selections: list[Selection], K: int, device) -> Selection:
-    """Concatenate chunk selections (chunks never share a pixel), sorted by pixel."""
-    if not selections:
-        return Selection(torch.zeros(0, dtype=torch.long, device=device), torch.zeros(0, K, dtype=torch.long, device=device))
-    if len(selections) == 1:
-        return selections[0]
-    pix = torch.cat([s.pix for s in selections])
-    order = torch.argsort(pix)
-    rest_pix = rest_prim = None
-    if selections[0].rest_pix is not None:
-        rest_pix = torch.cat([s.rest_pix for s in selections])
-        rest_prim = torch.cat([s.rest_prim for s in selections])
-    used = None if any(s.used is None for s in selections) else sum(s.used for s in selections)
-    return Selection(pix[order], torch.cat([s.prim for s in selections])[order], rest_pix, rest_prim,
-                     largest([s.most for s in selections]), used=used)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..data.synthetic_views import camera_positions
+from ..data.view_detail import camera_positions
 
 
 def _angle(u: Tensor, v: Tensor) -> Tensor:

@@ -26,7 +26,9 @@ import yaml
 
 from scipy import stats
 
-from .compare import CompareError, _matches, mean_sd
+from .paired_stats import mean_sd
+from .sides import CompareError, _matches
+from ..runtime.dotted import lookup
 from .folders import Run
 
 ANY = "<set>"  # a ``where`` value: the key holds any value but null
@@ -117,16 +119,9 @@ def load_tables(path: Path | str = TABLES_FILE) -> list[Table]:
 
 
 def metric_value(metrics: dict, dotted: str) -> float | None:
-    """``metrics["a"]["b"]`` for ``"a.b"`` (keys may contain dots themselves, e.g. ``"0.5"``), else None."""
-    node, rest = metrics, dotted
-    while rest:
-        if not isinstance(node, dict):
-            return None
-        key = next((k for k in sorted(node, key=len, reverse=True)
-                    if rest == k or rest.startswith(k + ".")), None)
-        if key is None:
-            return None
-        node, rest = node[key], rest[len(key) + 1:]
+    """``metrics["a"]["b"]`` for ``"a.b"`` (keys may contain dots themselves, e.g. ``"0.5"``) as a
+    float, else None (absent, or not a number)."""
+    node = lookup(metrics, dotted)
     return float(node) if isinstance(node, (int, float)) and not isinstance(node, bool) else None
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
+from ..config.compose import override_key
 from .folders import STATUS_FILE, Run, sweep_jobs  # noqa: F401 (STATUS_FILE re-exported)
 from .settings import is_local
 
@@ -64,7 +65,7 @@ def _fmt(v) -> str:
 
 def _override_values(overrides: list[str]) -> dict[str, str]:
     """``["+a.b=1", "c=x"]`` -> ``{"a.b": "1", "c": "x"}`` (in order; entries without ``=`` skipped)."""
-    return {o.split("=", 1)[0].lstrip("+~"): o.split("=", 1)[1] for o in overrides if "=" in o}
+    return {override_key(o): o.split("=", 1)[1] for o in overrides if "=" in o}
 
 
 def write_summary(sweep_dir) -> tuple[Path, Path]:

@@ -28,7 +28,7 @@ import json
 import math
 from pathlib import Path
 
-from .compare import mean_sd
+from .paired_stats import mean_sd
 from .folders import METRICS_FILE, Run, finished_at, started_at, sweep_jobs
 from .sweep import _override_values, _setting, failed_jobs, job_row
 

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .dotted import lookup
+
 
 # config keys (dotted) whose change makes a checkpoint's weights meaningless for the new config
 MODEL_KEYS = ("views", "image_size", "selector", "point_encoder", "backbone.name", "mvnet", "dataset.name",
@@ -22,7 +24,7 @@ NUMPY_ARRAYS = [(getattr(np, "_core", None) or np.core).multiarray._reconstruct,
 
 
 # what ``save_atomic``'s payload holds; another format is refused (docs/training.md#checkpoint-formats)
-FORMAT = 3
+FORMAT = 4
 
 
 class CheckpointMismatch(ValueError):
@@ -119,12 +121,7 @@ def load(path, map_location="cpu") -> dict:
 
 
 def _get(cfg: dict, dotted: str):
-    node = cfg
-    for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
+    return lookup(cfg, dotted)
 
 
 def _leaves(value, prefix: str) -> dict:

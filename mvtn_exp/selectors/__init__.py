@@ -3,7 +3,8 @@
 Fixed layouts live in ``fixed.py``, the paper's learned regressor in ``mvtn.py``, the
 point-of-interest G and this project's recipe in ``poi.py``, scene-parameter optimisation in
 ``optimized.py``. Each option's config dataclass is registered in ``config.REGISTRY`` (``selector=NAME``)
-and builds its module; how G trains in the loop is ``training.py`` / ``probes.py``.
+and builds its module; how G trains in the loop is ``training.py`` with the training strategies of
+``strategies/`` (the smoothed gradient, view flips, raced hypotheses, the view search).
 """
 from __future__ import annotations
 

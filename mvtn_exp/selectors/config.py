@@ -6,7 +6,9 @@ so a key of another option is refused at compose time. A config knows:
 
 - ``learned`` (class attribute): whether G has parameters to train;
 - ``build(views, seed, point_encoder)``: the ``ViewSelector`` module, M = ``views``;
-- ``modules(views)``: extra state the model keeps for G's training (``{}``; see ``training.py``);
+- ``strategies`` (class attribute): the training strategies it offers, in the order their hooks
+  run (``selectors/strategies/``); their keys dataclasses are mixed into the config as flat keys;
+- ``modules(views)``: extra state the model keeps for G's training (its enabled strategies');
 - ``training()``: the class of G's training in the loop (``selectors/training.py``);
 - ``validate()`` (own keys) and ``check(cfg)`` (against the whole ``TrainConfig``).
 
@@ -14,18 +16,17 @@ Angles are degrees, distances world units (Y-up; ``render/cameras.py``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, make_dataclass
 from typing import TYPE_CHECKING, ClassVar, Optional
 
 from ..config.checks import at_least, fraction, one_of
-from ..config.options import OPTIONS, OptionConfig, load
+from ..config.options import OPTIONS, OptionConfig, load, summary
 from ..render.layouts import SPHERES
+from .strategies import (FlipKeys, Flips, Search, SearchKeys, Smoothed, SmoothedKeys, StrategyKeys, declare_base_keys,
+                         key_names)
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..config.schema import TrainConfig
-
-# the key that asks for each per-shape module of G's training (``modules``)
-MODULE_KEYS = {"hypotheses": "hypotheses", "polarity": "flip_explore"}
 
 REGISTRY = OPTIONS["selector"]  # every selector option, by name (filled by the selector modules)
 register = REGISTRY.register
@@ -53,12 +54,32 @@ class SelectorConfig(OptionConfig):
 
     learned: ClassVar[bool] = False
     # keys that set how the run trains, not what the model is: they may change when a run is resumed
+    # (the strategies' own training keys are added by ``free_keys``)
     training_keys: ClassVar[tuple] = ("bn_recalibrate", "bn_recalibrate_scope")
+    strategies: ClassVar[tuple] = ()  # the training strategies this option offers, in hook order
+
+    def __init_subclass__(cls, **kw) -> None:
+        """A config offers a strategy only with its keys class among its bases, and no other class
+        of it (but the keys class's own subclasses, which may change defaults) declares those keys."""
+        super().__init_subclass__(**kw)
+        missing = [s.name for s in cls.strategies if not issubclass(cls, s.keys)]
+        if missing:
+            raise TypeError(f"{cls.__name__} offers strategies {missing} without their keys: derive it from "
+                            f"{', '.join(s.keys.__name__ for s in cls.strategies if s.name in missing)}")
+        for s in cls.strategies:
+            mine = set(key_names(s.keys))
+            for base in cls.__mro__:
+                clash = mine & set(base.__dict__.get("__annotations__", {}))
+                if clash and not issubclass(base, s.keys):
+                    raise TypeError(f"{cls.__name__}: selector.{sorted(clash)[0]} is a key of strategy {s.name!r} "
+                                    f"and of {base.__name__}")
 
     @classmethod
     def free_keys(cls) -> list[str]:
-        """The dotted ``training_keys`` (``selector.lr``, ...): they may differ on resume and view transfer."""
-        return [f"selector.{k}" for k in cls.training_keys]
+        """The dotted training keys, the option's and its strategies' (``selector.lr``, ...): they
+        may differ on resume and view transfer."""
+        keys = list(cls.training_keys) + [k for s in cls.strategies for k in s.training_keys]
+        return [f"selector.{k}" for k in dict.fromkeys(keys)]
 
     def validate(self) -> "SelectorConfig":
         super().validate()
@@ -71,19 +92,19 @@ class SelectorConfig(OptionConfig):
     def build(self, views: int, seed: int, point_encoder=None):
         raise NotImplementedError(f"{type(self).__name__}.build")
 
+    def enabled_strategies(self) -> list[type]:
+        """The strategies this config turns on, in hook order."""
+        return [s for s in type(self).strategies if s.enabled(self)]
+
     def modules(self, views: int) -> dict:
         """Extra modules the model keeps for G's training (their buffers travel in checkpoints)."""
-        return {}
+        return {name: m for s in self.enabled_strategies() for name, m in s.modules(self, views).items()}
 
     def multi_process_problem(self, views: int, processes: int) -> Optional[str]:
-        """One line when this selector cannot train in ``processes`` processes (per-shape statistics
-        of its training that are not shared between them), else None."""
-        extra = self.modules(views)
-        if not extra:
-            return None
-        key = next(MODULE_KEYS[name] for name in extra if name in MODULE_KEYS)
-        return (f"selector.{key}={getattr(self, key)} with {processes} processes: selector={self.name}'s per-shape "
-                f"statistics ({', '.join(extra)}) are not shared between processes yet; run it in one process")
+        """One line when this selector cannot train in ``processes`` processes (the first enabled
+        strategy that says so: per-shape statistics not shared between them), else None."""
+        return next((p for s in self.enabled_strategies() if (p := s.multi_process_problem(self, views, processes))),
+                    None)
 
     def training(self):
         from .training import SelectorTraining
@@ -103,45 +124,13 @@ class SelectorConfig(OptionConfig):
         return False
 
 
-GRADIENTS = ("autograd", "smoothed", "search")  # how G gets its gradient (selectors/view_gradient.py)
 LOSSES = ("task", "centered_logit")  # what G minimises (tasks/classification.py: selector_loss_fn)
 WARMUP_VIEWS = ("u0", "random", "spherical", "canonical")
 
 
 @dataclass
-class LearnedSelectorConfig(SelectorConfig):
-    """A G with parameters, and how it trains (``selectors/training.py``, ``selectors/probes.py``).
-
-    ``sphere``: how spherical layouts spread M views (``equal_area``: the paper's rings, or
-    ``fibonacci``). ``num_points``: G reads the first n of the shape's points (null: all).
-    ``from_ckpt``: view transfer: G's weights from another run's checkpoint, frozen.
-
-    G's optimiser (an AdamW group beside C's): ``lr``, ``beta1`` (first-moment decay), ``clip``
-    (G's gradient L2 norm clipped before the step), ``stop_epoch`` (G's learning rate is 0 from
-    this 0-based epoch on; null: never), ``move_every`` (after the warm-up G moves in one epoch of
-    every k and holds its views for the k - 1 after it, while C learns from them; 1: every epoch).
-    ``warmup_epochs``: G frozen for the first epochs while C
-    trains on ``warmup_views`` (u0: G's initial views; random; spherical; canonical: a circular
-    ring at ``warmup_elevation`` degrees in each shape's principal frame, ``selectors/canonical.py``,
-    so that C learns from one consistent view of every shape before G moves), ``warmup_num_views``
-    of them (null: ``views``).
-
-    ``grad``: ``autograd`` (the paper's: through the differentiable renderer) or ``smoothed`` (the
-    task loss smoothed over the views by a Gaussian of ``probe_sigma`` degrees, estimated from
-    ``probe_pairs`` antithetic pairs of renders every ``probe_every`` steps, their renders in one
-    renderer call with ``probe_batched``; any renderer); ``train_jitter``: C trains on G's views
-    moved by Gaussian noise of this many degrees in azimuth and elevation, so that it does not
-    adapt to G's exact view (0: G's views; needs ``grad=smoothed``, whose probes stay at G's views).
-    ``search``: C's loss read at ``search_views`` candidate directions over the sphere every
-    ``search_every`` steps, each view pulled towards the best candidate near it with weight
-    ``search_weight`` (``selectors/search.py``; any renderer).
-    ``loss``: what G minimises: ``task`` (the paper's: C's loss) or ``centered_logit``
-    (``mean_c z_c - z_y``; needs ``grad=smoothed`` or ``search``). ``flip_explore``: for the first
-    ``flip_epochs`` epochs each view is rendered from its antipode with this probability, and a
-    view whose antipode had the lower loss turns round (0: off; ``selectors/polarity.py``).
-    ``bn_recalibrate`` / ``bn_recalibrate_scope`` (every selector's keys, ``SelectorConfig``) re-estimate
-    C's BatchNorm statistics on G's current views before each validation.
-    """
+class LearnedKeys(StrategyKeys):
+    """The base keys of every learned selector (``LearnedSelectorConfig`` documents them)."""
 
     sphere: str = "equal_area"
     num_points: Optional[int] = 256
@@ -157,27 +146,12 @@ class LearnedSelectorConfig(SelectorConfig):
     warmup_elevation: float = 30.0
     grad: str = "autograd"
     loss: str = "task"
-    probe_pairs: int = 2
-    probe_sigma: float = 10.0
-    train_jitter: float = 0.0
-    probe_every: int = 1
-    probe_batched: bool = False
-    search_views: int = 12
-    search_every: int = 1
-    search_weight: float = 1.0
-    flip_explore: float = 0.0
-    flip_epochs: int = 10
 
-    learned: ClassVar[bool] = True
-    # keys that set how G trains, not what the model is: they may change when a run is resumed
-    training_keys: ClassVar[tuple] = SelectorConfig.training_keys + (
-                                      "lr", "beta1", "clip", "stop_epoch", "move_every", "warmup_epochs", "warmup_views",
-                                      "warmup_num_views", "warmup_elevation", "grad", "loss", "probe_pairs", "probe_sigma", "probe_every", "train_jitter",
-                                      "probe_batched", "search_views", "search_every", "search_weight",
-                                      "flip_epochs", "race_epochs",
-                                      "race_z", "race_batches", "race_mode", "race_probes", "cache")
+    def gradients(self) -> tuple:
+        """The ``grad`` values allowed: ``autograd`` and the gradient strategies the config offers."""
+        return ("autograd",) + tuple(s.grad for s in type(self).strategies if s.grad)
 
-    def validate(self) -> "LearnedSelectorConfig":
+    def validate(self):
         super().validate()
         one_of("selector.sphere", self.sphere, SPHERES)
         if self.num_points is not None:
@@ -197,33 +171,15 @@ class LearnedSelectorConfig(SelectorConfig):
             if self.warmup_epochs == 0:
                 raise ValueError(f"selector.warmup_num_views={self.warmup_num_views}: there is no warm-up; set "
                                  "selector.warmup_epochs >= 1")
-        one_of("selector.grad", self.grad, GRADIENTS)
+        one_of("selector.grad", self.grad, self.gradients())
         one_of("selector.loss", self.loss, LOSSES)
         if self.loss != "task" and self.grad == "autograd":
             raise ValueError(f"selector.loss={self.loss}: G's own loss is read from extra renders; it needs "
-                             "selector.grad=smoothed or search (autograd trains G on C's loss)")
-        at_least("selector.search_views", self.search_views, 1)
-        at_least("selector.search_every", self.search_every, 1)
-        at_least("selector.search_weight", self.search_weight, 0.0, strict=True)
-        if self.grad == "search" and self.flip_explore > 0:
-            raise ValueError("selector.grad=search with selector.flip_explore: the search already looks all round; "
-                             "set selector.flip_explore=0")
-        at_least("selector.probe_pairs", self.probe_pairs, 1)
-        at_least("selector.probe_sigma", self.probe_sigma, 0.0, strict=True)
-        at_least("selector.train_jitter", self.train_jitter, 0.0)
-        if self.train_jitter > 0 and self.grad != "smoothed":
-            raise ValueError(f"selector.train_jitter={self.train_jitter}: C's views are moved off G's only with "
-                             "selector.grad=smoothed (G's gradient from probes at its own views)")
-        at_least("selector.probe_every", self.probe_every, 1)
-        if not 0.0 <= self.flip_explore < 1.0:
-            raise ValueError(f"selector.flip_explore={self.flip_explore!r}: expected a probability in [0, 1)")
-        at_least("selector.flip_epochs", self.flip_epochs, 1)
-        if self.from_ckpt and self.flip_explore > 0:
-            raise ValueError("selector.from_ckpt with selector.flip_explore: a transferred G is frozen, its views are "
-                             "not turned round")
+                             f"selector.grad={' or '.join(self.gradients()[1:])} (autograd trains G on C's loss)")
         return self
 
     def check(self, cfg: "TrainConfig") -> None:
+        super().check(cfg)
         if cfg.batch_size < 2:
             raise ValueError(f"batch_size={cfg.batch_size}: a learned selector (BatchNorm in G) trains on batches "
                              "of at least 2 shapes")
@@ -232,19 +188,53 @@ class LearnedSelectorConfig(SelectorConfig):
             raise ValueError(f"selector.warmup_num_views={n_warm} with selector.warmup_views=u0: G's initial views "
                              f"are views={cfg.views}; use warmup_views=spherical or random for another count")
 
-    def modules(self, views: int) -> dict:
-        from .polarity import ViewPolarity
 
-        return {"polarity": ViewPolarity(views)} if self.flip_explore > 0 else {}
+@dataclass
+class LearnedSelectorConfig(FlipKeys, SearchKeys, SmoothedKeys, LearnedKeys, SelectorConfig):
+    """A G with parameters, and how it trains (``selectors/training.py``, ``selectors/strategies/``).
+
+    ``sphere``: how spherical layouts spread M views (``equal_area``: the paper's rings, or
+    ``fibonacci``). ``num_points``: G reads the first n of the shape's points (null: all).
+    ``from_ckpt``: view transfer: G's weights from another run's checkpoint, frozen.
+
+    G's optimiser (an AdamW group beside C's): ``lr``, ``beta1`` (first-moment decay), ``clip``
+    (G's gradient L2 norm clipped before the step), ``stop_epoch`` (G's learning rate is 0 from
+    this 0-based epoch on; null: never), ``move_every`` (after the warm-up G moves in one epoch of
+    every k and holds its views for the k - 1 after it, while C learns from them; 1: every epoch).
+    ``warmup_epochs``: G frozen for the first epochs while C
+    trains on ``warmup_views`` (u0: G's initial views; random; spherical; canonical: a circular
+    ring at ``warmup_elevation`` degrees in each shape's principal frame, ``selectors/canonical.py``,
+    so that C learns from one consistent view of every shape before G moves), ``warmup_num_views``
+    of them (null: ``views``).
+
+    ``grad``: ``autograd`` (the paper's: through the differentiable renderer) or a gradient
+    strategy: ``smoothed`` (the task loss smoothed over the views by a Gaussian of ``probe_sigma``
+    degrees, estimated from ``probe_pairs`` antithetic pairs of renders every ``probe_every``
+    steps, their renders in one renderer call with ``probe_batched``; any renderer;
+    ``train_jitter``: C trains on G's views moved by Gaussian noise of this many degrees in azimuth
+    and elevation, so that it does not adapt to G's exact view; ``strategies/smoothed.py``) or
+    ``search`` (C's loss read at ``search_views`` candidate directions over the sphere every
+    ``search_every`` steps, each view pulled towards the best candidate near it with weight
+    ``search_weight``; ``strategies/search.py``; any renderer).
+    ``loss``: what G minimises: ``task`` (the paper's: C's loss) or ``centered_logit``
+    (``mean_c z_c - z_y``; needs ``grad=smoothed`` or ``search``). ``flip_explore``: for the first
+    ``flip_epochs`` epochs each view is rendered from its antipode with this probability, and a
+    view whose antipode had the lower loss turns round (0: off; ``strategies/flips.py``).
+    ``bn_recalibrate`` / ``bn_recalibrate_scope`` (every selector's keys, ``SelectorConfig``) re-estimate
+    C's BatchNorm statistics on G's current views before each validation.
+    """
+
+    learned: ClassVar[bool] = True
+    # keys that set how G trains, not what the model is: they may change when a run is resumed
+    training_keys: ClassVar[tuple] = SelectorConfig.training_keys + (
+        "lr", "beta1", "clip", "stop_epoch", "move_every", "warmup_epochs", "warmup_views", "warmup_num_views",
+        "warmup_elevation", "grad", "loss")
+    strategies: ClassVar[tuple] = (Smoothed, Flips, Search)
 
     def training(self):
-        from .probes import ProbeTraining
-        from .search import SearchTraining
         from .training import LearnedTraining
 
-        if self.grad == "search":
-            return SearchTraining
-        return ProbeTraining if (self.grad == "smoothed" or self.flip_explore > 0) else LearnedTraining
+        return LearnedTraining
 
     def kept_points(self) -> Optional[int]:
         return self.num_points
@@ -255,3 +245,20 @@ class LearnedSelectorConfig(SelectorConfig):
     def lr_scale(self, epoch: int) -> float:
         """G's learning-rate multiplier on top of the schedule during 0-based ``epoch``."""
         return 0.0 if self.stop_epoch is not None and epoch >= self.stop_epoch else 1.0
+
+
+declare_base_keys(SelectorConfig, LearnedKeys)
+
+
+def compose_selector(name: str, base: type, *strategies: type, doc: Optional[str] = None) -> type:
+    """Register selector option ``name``: ``base``'s config (a registered option's class) with
+    ``strategies`` added after its own (their keys mixed in as flat keys, their hooks run last);
+    ``doc``: the option's description (default: ``base``'s, naming the strategies). Returns the class."""
+    names = ", ".join(s.name for s in strategies)
+    cls = make_dataclass(
+        "".join(p.title() for p in name.split("_")) + "Config", [("name", str, field(default=name))],
+        bases=tuple(s.keys for s in reversed(strategies)) + (base,),
+        namespace={"strategies": tuple(base.strategies) + tuple(strategies),
+                   "__doc__": doc or f"{summary(base).rstrip('.')}, with {names}."})
+    cls.__module__ = strategies[0].__module__ if strategies else base.__module__
+    return register(name)(cls)

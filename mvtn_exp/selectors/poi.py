@@ -42,20 +42,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import partial
-from typing import TYPE_CHECKING, Optional, Sequence
+from typing import ClassVar, Sequence
 
 import torch
 from torch import Tensor, nn
 
-from mvtn_exp.config.checks import at_least, one_of
+from mvtn_exp.config.checks import at_least
 from mvtn_exp.render import layouts
 from mvtn_exp.selectors.config import LearnedSelectorConfig, register
 from mvtn_exp.selectors.fixed import ViewSelector, Views
 from mvtn_exp.selectors.invariant_cache import InvariantCache
 from mvtn_exp.selectors.polarity import antipode
-
-if TYPE_CHECKING:  # pragma: no cover
-    from mvtn_exp.config.schema import TrainConfig
+from mvtn_exp.selectors.strategies import Flips, Race, RaceKeys, Search, Smoothed
+from mvtn_exp.selectors.strategies.race import ONE_SET
 
 
 def invariant_descriptors(points: Tensor, ks: Sequence[int] = (16, 48)) -> Tensor:
@@ -207,13 +206,9 @@ class PointOfInterestSelector(ViewSelector):
 
 
 # ----------------------------------------------------------------------------- config options
-RACE_MODES = ("separate", "pooled")  # how C sees the hypotheses while they race (selectors/hypotheses.py)
-ONE_SET = "selector.hypotheses=1 selector.race_epochs=0 selector.antipodes=false"  # one set of views, no race
-
-
 @register("mvtn_poi")
 @dataclass
-class PoiConfig(LearnedSelectorConfig):
+class PoiConfig(RaceKeys, LearnedSelectorConfig):
     """The point-of-interest G alone (defaults: the paper's training, autograd on C's loss).
 
     ``gain``: how far the point of interest pulls the cameras from u0 (``learn_gain``: a parameter
@@ -226,7 +221,8 @@ class PoiConfig(LearnedSelectorConfig):
     own (separate) or all H x M views pooled (pooled); ``antipodes``: the second half of the H
     hypotheses are the first half's views from the opposite side (G scores H / 2);
     ``race_probes``: false holds G's hypotheses where they start while they race (no probes, no
-    G step: a racing step then costs C's passes alone) and lets the kept one move after the race.
+    G step: a racing step then costs C's passes alone) and lets the kept one move after the race
+    (the race: ``selectors/strategies/race.py``).
     ``descriptors``: the subset G scores from (``DESCRIPTORS``); ``ks``: the neighbourhood sizes
     (points) they are computed over."""
 
@@ -234,15 +230,12 @@ class PoiConfig(LearnedSelectorConfig):
     gain: float = 8.0
     cache: int = 4096
     learn_gain: bool = False
-    hypotheses: int = 1
-    race_epochs: int = 0
-    race_z: Optional[float] = 3.0
-    race_batches: Optional[int] = None
-    race_mode: str = "separate"
     antipodes: bool = False
-    race_probes: bool = True
     descriptors: list[str] = field(default_factory=lambda: list(DESCRIPTORS))
     ks: list[int] = field(default_factory=lambda: [16, 48])
+
+    training_keys: ClassVar[tuple] = LearnedSelectorConfig.training_keys + ("cache",)
+    strategies: ClassVar[tuple] = (Smoothed, Flips, Race, Search)
 
     def validate(self) -> "PoiConfig":
         super().validate()
@@ -252,53 +245,17 @@ class PoiConfig(LearnedSelectorConfig):
         descriptor_columns(self.descriptors, tuple(self.ks))
         at_least("selector.gain", self.gain, 0.0, strict=True)
         at_least("selector.cache", self.cache, 0)
-        at_least("selector.hypotheses", self.hypotheses, 1)
-        at_least("selector.race_epochs", self.race_epochs, 0)
-        if self.race_z is not None:
-            at_least("selector.race_z", self.race_z, 0.0)
-        if self.race_batches is not None:
-            at_least("selector.race_batches", self.race_batches, 1)
-        one_of("selector.race_mode", self.race_mode, RACE_MODES)
-        if (self.hypotheses > 1) != (self.race_epochs > 0):
-            raise ValueError(f"selector.hypotheses={self.hypotheses} with selector.race_epochs={self.race_epochs}: "
-                             f"set both (hypotheses >= 2 and race_epochs >= 1) or neither (one set of views: {ONE_SET})")
-        if self.hypotheses > 1 and (self.flip_explore > 0 or self.grad == "search"):
-            raise ValueError(f"selector.hypotheses={self.hypotheses} with selector.flip_explore or selector.grad=search: "
-                             f"choose one way to explore (one set of views: {ONE_SET})")
-        if not self.race_probes and self.hypotheses < 2:
-            raise ValueError("selector.race_probes=false with selector.hypotheses=1: nothing races (it holds G only "
-                             "while hypotheses race)")
         if self.antipodes and (self.hypotheses < 2 or self.hypotheses % 2):
             raise ValueError(f"selector.antipodes=true with selector.hypotheses={self.hypotheses}: expected an even "
                              "number of hypotheses (each free one raced against its views from the opposite side); "
                              f"one set of views: {ONE_SET}")
-        if self.from_ckpt and self.hypotheses > 1:
-            raise ValueError(f"selector.from_ckpt with selector.hypotheses={self.hypotheses}: a transferred G is "
-                             f"frozen, it races nothing; add {ONE_SET}")
         return self
-
-    def check(self, cfg: "TrainConfig") -> None:
-        super().check(cfg)
-        if self.hypotheses > 1 and not cfg.mvnet.any_view_set:
-            raise ValueError(f"selector.hypotheses={self.hypotheses} with mvnet={cfg.mvnet.name}: racing hypotheses is "
-                             f"for MVCNN-style networks; use {ONE_SET}")
 
     def build(self, views: int, seed: int, point_encoder=None) -> PointOfInterestSelector:
         return PointOfInterestSelector(views, distance=self.distance, gain=self.gain, sphere=self.sphere,
                                        cache=self.cache, learn_gain=self.learn_gain, hypotheses=self.hypotheses,
                                        descriptors=tuple(self.descriptors), ks=tuple(int(k) for k in self.ks),
                                        antipodes=self.antipodes)
-
-    def modules(self, views: int) -> dict:
-        from mvtn_exp.selectors.hypotheses import HypothesisRace
-
-        extra = super().modules(views)
-        return {**extra, "hypotheses": HypothesisRace(self.hypotheses)} if self.hypotheses > 1 else extra
-
-    def training(self):
-        from mvtn_exp.selectors.probes import ProbeTraining
-
-        return ProbeTraining if self.hypotheses > 1 else super().training()
 
 
 @register("poi")

@@ -14,9 +14,11 @@ A selector config's ``training()`` names the class; the trainer builds it once p
 - ``before_validation(model, batches) -> state | None`` / ``after_validation(model, state)``;
 - ``history(model) -> dict``: what the epoch's record keeps of G's training state.
 
-``SelectorTraining`` is the fixed views' (nothing to train); ``LearnedTraining`` the paper's
-(autograd through the differentiable renderer on C's loss, an optional warm-up with G frozen);
-``probes.ProbeTraining`` adds the smoothed gradient, G's own loss, view flips and raced hypotheses.
+``SelectorTraining`` is the fixed views' (nothing to train) and holds the one ``train_step``;
+``LearnedTraining`` the paper's (autograd through the differentiable renderer on C's loss, an
+optional warm-up with G frozen, ``move_every``, ``stop_epoch``) plus the training strategies its
+config turns on (``selectors/strategies/``: the smoothed gradient, view flips, raced hypotheses,
+the view search), whose hooks run in the config's order inside that step.
 """
 from __future__ import annotations
 
@@ -30,6 +32,8 @@ from ..render import layouts
 from .canonical import pca_frames, world_views
 from . import view_transfer
 from .fixed import random_directions
+from .hypotheses import split_images, split_views
+from .strategies import StepContext
 
 
 @dataclass
@@ -47,12 +51,18 @@ class Step:
 
 
 class SelectorTraining:
-    """Fixed views: every step renders the selector's views; there is no G to train."""
+    """Fixed views: every step renders the selector's views; there is no G to train.
+
+    ``train_step`` is the one training step of every selector: the phase flags (``warm``,
+    ``frozen``, ``learning``; all False here) and the enabled ``strategies`` (none here) shape it
+    through their hooks (``selectors/strategies/__init__.py``)."""
 
     clip: Optional[float] = None
 
     def __init__(self, cfg) -> None:
         self.cfg, self.s = cfg, cfg.selector
+        self.warm = self.frozen = self.learning = False
+        self.strategies: list = []
 
     def start(self, model, cfg_dict: dict, resumed: bool) -> None:
         """Called once after the model is built, before the optimizer; ``resumed``: the weights come
@@ -64,27 +74,60 @@ class SelectorTraining:
     def start_epoch(self, model, epoch: int, g_lr: Optional[float], hold_views: bool) -> None:
         """Called before the first step of 0-based ``epoch``; ``g_lr``: G's learning rate now."""
 
-    def select(self, model, batch: dict):
+    def context(self, model, batch: dict, step: int, loss_fn, timer) -> StepContext:
+        """A step's context, carrying the epoch's phase."""
+        return StepContext(model, batch, step, loss_fn, timer, warm=self.warm, frozen=self.frozen,
+                           learning=self.learning)
+
+    def select(self, model, batch: dict, ctx: StepContext):
+        """G's views of the step, each ``[B, M]`` (``[B, H * M]`` for H hypotheses)."""
         return model.select(batch)
 
-    def forward(self, model, batch: dict, views, loss_fn, grad_render: bool = True) -> Step:
-        """R then C on ``views``: the task loss is the objective."""
+    def forward(self, ctx: StepContext) -> None:
+        """R then C on ``ctx.seen``: fills ``ctx.labels``, ``images``, ``logits`` and C's ``loss``.
+        With S = ``ctx.sets`` > 1 each shape is S rows for C (its views split into S sets); R is
+        differentiated unless a strategy says otherwise."""
+        model, batch, S = ctx.model, ctx.batch, ctx.sets
         labels = batch["labels"].to(model.device)
-        with self.timer.stage("render"), torch.set_grad_enabled(grad_render):
-            images = model.render(batch, *views)
-        with self.timer.stage("backbone"):
-            logits, _ = model.classify(images, views, batch)
-            loss = model.mvnet.training_loss(logits, labels, loss_fn)
-        return Step(views, images, logits, labels, loss, loss)
+        ctx.labels = labels if S == 1 else labels.repeat_interleave(S)  # [B * S]
+        grad = all(s.differentiates_render(ctx) for s in self.strategies)
+        with ctx.timer.stage("render"), torch.set_grad_enabled(grad):
+            images = model.render(batch, *ctx.seen)
+            ctx.images = images if S == 1 else split_images(images, S)  # [B * S, M', 3, h, w]
+        with ctx.timer.stage("backbone"):
+            if S == 1:
+                ctx.logits, _ = model.classify(ctx.images, ctx.seen, batch)
+            else:
+                ctx.logits, _ = model.classify(ctx.images, split_views(ctx.seen, S))
+            ctx.loss = model.mvnet.training_loss(ctx.logits, ctx.labels, ctx.loss_fn)
 
     def train_step(self, model, batch: dict, step: int, loss_fn, timer) -> Step:
-        self.timer = timer
-        with timer.stage("selector"):
-            views = self.select(model, batch)
-        return self.forward(model, batch, views, loss_fn)
+        """G's views (after the strategies' ``transform_views``), C's views (``training_views``),
+        R and C, the strategies' records (``after_forward``), and the objective: C's loss plus
+        every strategy's ``g_term``."""
+        ctx = self.context(model, batch, step, loss_fn, timer)
+        for strategy in self.strategies:
+            strategy.begin_step(ctx)
+        with timer.stage("selector"), torch.set_grad_enabled(not self.frozen):
+            ctx.views = self.select(model, batch, ctx)
+            for strategy in self.strategies:
+                ctx.views = strategy.transform_views(ctx)
+        ctx.seen = ctx.views
+        for strategy in self.strategies:
+            ctx.seen = strategy.training_views(ctx)
+        self.forward(ctx)
+        for strategy in self.strategies:
+            strategy.after_forward(ctx)
+        objective = ctx.loss
+        for strategy in self.strategies:
+            term = strategy.g_term(ctx)
+            if term is not None:
+                objective = objective + term
+        return Step(ctx.views, ctx.images, ctx.logits, ctx.labels, ctx.loss, objective)
 
     def end_epoch(self, model, epoch: int) -> list[str]:
-        return []
+        """The strategies' decisions after the epoch's steps, their log lines in order."""
+        return [line for strategy in self.strategies for line in strategy.end_epoch(model, epoch)]
 
     def before_validation(self, model, batches) -> Optional[dict]:
         """``bn_recalibrate > 0``: re-estimate C's BatchNorm statistics on the selector's current
@@ -105,7 +148,8 @@ class SelectorTraining:
             precise_bn.restore(model, state)
 
     def history(self, model) -> dict:
-        return {}
+        """The strategies' entries of the epoch's record."""
+        return {k: v for strategy in self.strategies for k, v in strategy.history(model).items()}
 
 
 class LearnedTraining(SelectorTraining):
@@ -113,12 +157,13 @@ class LearnedTraining(SelectorTraining):
     ``beta1``), its gradient clipped to ``clip``; with ``move_every`` k it moves in one epoch of
     every k only. For the first ``warmup_epochs`` epochs (and
     whenever the multi-view net holds the views) G is frozen and C trains on ``warmup_views``; from
-    ``stop_epoch`` on, or at learning rate 0, C trains on G's views without G's gradient."""
+    ``stop_epoch`` on, or at learning rate 0, C trains on G's views without G's gradient.
+    ``strategies``: the config's enabled training strategies, built once per run, in its order."""
 
     def __init__(self, cfg) -> None:
         super().__init__(cfg)
         self.clip = self.s.clip
-        self.warm = self.frozen = False
+        self.strategies = [strategy(cfg) for strategy in self.s.enabled_strategies()]
 
     def start(self, model, cfg_dict: dict, resumed: bool) -> None:
         """``selector.from_ckpt``: G from another run, frozen (a resumed run has it in its own state)."""
@@ -138,6 +183,9 @@ class LearnedTraining(SelectorTraining):
         holding = (epoch - self.s.warmup_epochs) % self.s.move_every != 0
         self.frozen = trains and not self.warm and (g_lr == 0.0 or holding)
         self.learning = trains and not self.warm and not self.frozen
+        phase = StepContext(model, {}, -1, None, None, warm=self.warm, frozen=self.frozen, learning=self.learning)
+        for strategy in self.strategies:
+            strategy.start_epoch(model, epoch, phase)
 
     def warmup_views(self, model, batch: dict):
         """Views of a warm-up step, each ``[B, warmup_num_views or views]``: G's initial views u0,
@@ -155,7 +203,9 @@ class LearnedTraining(SelectorTraining):
             return world_views(ring, pca_frames(batch["points"].to(model.device)))
         return tuple(t.to(model.device) for t in model.selector.initial_views(B))
 
-    def select(self, model, batch: dict):
-        with torch.set_grad_enabled(not self.frozen):
-            return self.warmup_views(model, batch) if self.warm else model.select(batch)
+    def select(self, model, batch: dict, ctx: StepContext):
+        """Warm-up views while warm, else G's (all H hypotheses' when ``ctx.hypotheses`` > 1)."""
+        if self.warm:
+            return self.warmup_views(model, batch)
+        return model.select(batch, all_hypotheses=True) if ctx.hypotheses > 1 else model.select(batch)
 

@@ -26,7 +26,7 @@ def measure(shading: str, sections: int = 100, size: int = 224, views: int = 12)
 
     import torch
 
-    from mvtn_exp.bench.render_bench import Views, render_fns, renderer_for, torus_of
+    from mvtn_exp.bench.scenes import Views, render_fns, renderer_for, torus_of
 
     dev = torch.device("cpu")
     shape = torus_of(sections, dev, f"torus-{2 * sections * sections}")

@@ -49,7 +49,7 @@ from mvtn_exp.data.mesh_io import normalize_unit_sphere
 from mvtn_exp.data.shapes import Meshes
 from mvtn_exp.render.cameras import Cameras
 from mvtn_exp.render.renderer import MultiViewRenderer
-from mvtn_exp.bench.render_bench import _jsonable, md_table
+from mvtn_exp.bench.render_report import _jsonable, md_table
 
 SETTINGS = {
     "hard_flat": dict(mode="hard", shading="flat"),

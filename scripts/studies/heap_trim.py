@@ -24,8 +24,9 @@ def measure(trim_mib: int, cases=CASES, repeats: int = 5, size: int = 224, views
     import torch
 
     from mvtn_exp.runtime import memory
-    from mvtn_exp.bench.render_bench import (Bench, BenchOptions, Views, paired_ratio, paired_times, render_fns,
-                                             renderer_for, torus_of, torus_points)
+    from mvtn_exp.bench.render_bench import Bench, BenchOptions
+    from mvtn_exp.bench.scenes import Views, render_fns, renderer_for, torus_of, torus_points
+    from mvtn_exp.bench.timing import paired_ratio, paired_times
 
     if memory._LIBC is None:
         raise SystemExit("heap_trim: needs glibc (mallopt)")

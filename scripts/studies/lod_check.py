@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mvtn_exp.bench.render_bench import Views, renderer_for, torus_of
+from mvtn_exp.bench.scenes import Views, renderer_for, torus_of
 from mvtn_exp.data import mesh_io
 from mvtn_exp.data.shapes import Meshes
 from mvtn_exp.render import lod

@@ -52,7 +52,7 @@ def in_detail_cup(points: torch.Tensor, anchor, axis, size) -> torch.Tensor:
 def view_share(scores: torch.Tensor, points: torch.Tensor, frame, temperature: float) -> float:
     """Share of shapes whose view, from the direction of the softmax(log score / T)-weighted point
     of interest (``scores [B, N]`` in (0, 1], centred ``points [B, N, 3]``), sees the detail."""
-    from mvtn_exp.data.synthetic_views import sees_detail
+    from mvtn_exp.data.view_detail import sees_detail
 
     w = torch.softmax(torch.log(scores.clamp_min(1e-6)) / temperature, 1)
     d = torch.nn.functional.normalize((w[..., None] * points).sum(1), dim=-1, eps=1e-12).numpy()

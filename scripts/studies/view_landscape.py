@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from mvtn_exp.data.collate import collate_shapes
-from mvtn_exp.data.synthetic_views import view_angles
+from mvtn_exp.data.view_detail import view_angles
 from mvtn_exp.runtime import checkpoint
 from mvtn_exp.selectors import view_gradient
 from mvtn_exp.engine.trainer import as_config, make_datasets

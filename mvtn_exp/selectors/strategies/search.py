@@ -6,11 +6,12 @@ set of views only, that gradient is zero almost everywhere: from a view that doe
 detail, no small move changes what C sees of it (``docs/results/finding-the-detail.md``). A G
 that *can* express the right view (``scripts/studies/g_capacity.py``) then never finds it. The
 search gives G a target instead of a slope; the formulation of G is untouched (``u = u0 + u_bound
-tanh(G(S))`` for ``mvtn_spherical``), only its training differs. Every ``search_every`` steps:
+tanh(G(S))`` for ``mvtn_spherical``), only its training differs. Every ``search_every`` steps
+while G learns:
 
 1. candidates: ``search_views`` directions spread over the sphere (the equal-area layout, turned
-   by a fresh random rotation each search so that the candidates cover the sphere over time), at
-   the selector's distance, plus G's own M views;
+   by a fresh random rotation each search, from ``noise_generator(seed + 104_729, step)``, so that
+   the candidates cover the sphere over time), at the selector's distance, plus G's own M views;
 2. each candidate rendered and classified *alone* by C (eval mode, no gradient), scored by G's
    per-shape loss (``selector.loss``: ``task`` or ``centered_logit``), ``[B, K + M]``;
 3. G's view m is assigned the candidates nearer to it than to G's other views (its own among them)
@@ -25,16 +26,22 @@ training only (the loss needs them); evaluation is G alone.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Optional
+
 import torch
 from torch import Tensor
 
-from . import view_gradient
-from ..render import layouts
-from ..render.cameras import direction_angles as to_angles
-from ..render.cameras import view_directions as unit_directions
-from ..tasks import classification
-from ..tasks.robustness import random_rotations
-from .training import LearnedTraining, Step
+from ...config.checks import at_least
+from ...render import layouts
+from ...render.cameras import direction_angles as to_angles
+from ...render.cameras import view_directions as unit_directions
+from ...tasks import classification
+from ...tasks.robustness import random_rotations
+from .. import view_gradient
+from .base import Strategy, StepContext, StrategyKeys, register_strategy
+
+SEARCH_SEED = 104_729  # the candidates' rotations: a stream apart from the smoothed noise
 
 
 def candidates(K: int, B: int, distance: float, generator: torch.Generator, device) -> tuple:
@@ -68,12 +75,42 @@ def search_loss(views: tuple, target: Tensor) -> Tensor:
     return (1.0 - (unit_directions(views[0], views[1]) * target.detach()).sum(-1)).mean()
 
 
-class SearchTraining(LearnedTraining):
-    """``LearnedTraining`` with G's gradient from the view search of the module docstring."""
+@dataclass
+class SearchKeys(StrategyKeys):
+    """``search_views`` candidates every ``search_every`` steps, G pulled with weight ``search_weight``."""
+
+    search_views: int = 12
+    search_every: int = 1
+    search_weight: float = 1.0
+
+    def validate(self):
+        super().validate()
+        at_least("selector.search_views", self.search_views, 1)
+        at_least("selector.search_every", self.search_every, 1)
+        at_least("selector.search_weight", self.search_weight, 0.0, strict=True)
+        return self
+
+
+@register_strategy
+class Search(Strategy):
+    """G's gradient from the view search of the module docstring; R is never differentiated."""
+
+    name = "search"
+    keys = SearchKeys
+    training_keys = ("search_views", "search_every", "search_weight")
+    switch = "grad"
+    grad = "search"
 
     def __init__(self, cfg) -> None:
         super().__init__(cfg)
         self.selector_loss = classification.selector_loss_fn(self.s.loss, cfg.task)
+        self.learning = False
+
+    def start_epoch(self, model, epoch: int, ctx: StepContext) -> None:
+        self.learning = ctx.learning
+
+    def differentiates_render(self, ctx: StepContext) -> bool:
+        return False
 
     def score(self, model, batch: dict, views: tuple, labels: Tensor) -> Tensor:
         """G's loss of every view of ``views`` (each ``[B, C]``) seen alone by C -> ``[B, C]``."""
@@ -84,20 +121,16 @@ class SearchTraining(LearnedTraining):
             logits, _ = model.mvnet(images.reshape(B * C, 1, *images.shape[2:]), alone)
         return self.selector_loss(logits.float(), labels.repeat_interleave(C)).reshape(B, C)
 
-    def train_step(self, model, batch: dict, step: int, loss_fn, timer) -> Step:
-        self.timer = timer
-        with timer.stage("selector"), torch.set_grad_enabled(not self.frozen):
-            views = self.select(model, batch)
-        out = self.forward(model, batch, views, loss_fn, grad_render=False)
-        if not self.learning or step % self.s.search_every:
-            return out
-        with timer.stage("selector"):
+    def g_term(self, ctx: StepContext) -> Optional[Tensor]:
+        if not self.learning or ctx.step % self.s.search_every or ctx.hold_g:
+            return None
+        views = ctx.views
+        with ctx.timer.stage("selector"):
             B, device = views[0].shape[0], views[0].device
-            gen = view_gradient.noise_generator(self.cfg.seed + 104_729, step)
+            gen = view_gradient.noise_generator(self.cfg.seed + SEARCH_SEED, ctx.step)
             cand = candidates(self.s.search_views, B, self.s.distance, gen, device)
             own = tuple(v.detach() for v in views)
             pool = tuple(torch.cat([c, o], 1) for c, o in zip(cand, own))  # [B, K + M]
-            scores = self.score(model, batch, pool, out.labels)
+            scores = self.score(ctx.model, ctx.batch, pool, ctx.labels)
             target = targets(unit_directions(own[0], own[1]), unit_directions(pool[0], pool[1]), scores)
-            g_loss = self.s.search_weight * search_loss(views, target)
-        return Step(out.views, out.images, out.logits, out.labels, out.loss, out.objective + g_loss)
+            return self.s.search_weight * search_loss(views, target)
