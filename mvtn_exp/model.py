@@ -13,24 +13,25 @@ from .render.renderer import MultiViewRenderer
 from .config.schema import TrainConfig
 from .data.config import SHAPES
 from .selectors.canonical import CanonicalPose, world_views
-from .selectors.hypotheses import HypothesisRace
-from .selectors.polarity import ViewPolarity
 
 
 class MVTN(nn.Module):
     """``forward(batch) -> dict(logits [B, K], features [B, D], azim/elev/dist [B, M], images [B, M, 3, H, W])``.
 
     ``batch`` is a ``collate_shapes`` dict: G reads ``points [B, N, 3]``; R renders ``meshes`` when
-    ``shape == "mesh"`` and a ``PointClouds`` of ``points`` when ``shape == "points"``.
+    ``shape == "mesh"`` and a ``PointClouds`` of ``points`` when ``shape == "points"``. ``extra``: the
+    per-shape modules of G's training (``SelectorConfig.modules``: named as given, their buffers in
+    checkpoints under those names); one with ``transforms_views`` also maps G's views at every
+    ``select`` (the view polarity turns views round for good).
     """
 
     def __init__(self, selector: nn.Module, renderer: MultiViewRenderer, mvnet: nn.Module, shape: str = "mesh",
-                 selector_points: Optional[int] = None, polarity: Optional[ViewPolarity] = None,
-                 hypotheses: Optional[HypothesisRace] = None, canonical: Optional[CanonicalPose] = None):
+                 selector_points: Optional[int] = None, canonical: Optional[CanonicalPose] = None, **extra: nn.Module):
         super().__init__()
         self.canonical = canonical  # each shape turned into its principal frame first (selectors/canonical.py)
-        self.hypotheses = hypotheses  # sets of views tried side by side early on (selectors/hypotheses.py)
-        self.polarity = polarity  # which side of its axis each learned view looks from (selectors/polarity.py)
+        for name, module in extra.items():
+            self.add_module(name, module)
+        self.view_transforms = tuple(name for name, module in extra.items() if getattr(module, "transforms_views", False))
         self.selector_points = selector_points  # a learned G reads the first n points (None: all)
         if shape not in SHAPES:
             raise ValueError(f"shape={shape!r}: expected one of {list(SHAPES)}")
@@ -96,7 +97,9 @@ class MVTN(nn.Module):
         if refine:  # evaluation reads no labels: the selector gets the batch without them
             seen = batch if self.training else {k: v for k, v in batch.items() if k != "labels"}
             views = self.selector.refine(self, seen, views)
-        return views if self.polarity is None else self.polarity(views)
+        for name in self.view_transforms:
+            views = getattr(self, name)(views)
+        return views
 
     def render_output(self, batch: dict, azim, elev, dist):
         """R: the batch's shapes seen from ``[B, M]`` views -> ``RenderOutput`` (images and coverage)."""

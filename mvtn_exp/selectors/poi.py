@@ -49,6 +49,7 @@ from torch import Tensor, nn
 
 from mvtn_exp.config.checks import at_least
 from mvtn_exp.render import layouts
+from mvtn_exp.render.cameras import view_directions
 from mvtn_exp.selectors.config import LearnedSelectorConfig, register
 from mvtn_exp.selectors.fixed import ViewSelector, Views
 from mvtn_exp.selectors.invariant_cache import InvariantCache
@@ -149,9 +150,7 @@ class PointOfInterestSelector(ViewSelector):
             azim0, elev0 = torch.cat([azim0, far[0]]), torch.cat([elev0, far[1]])
         self.register_buffer("azim0", azim0, persistent=False)  # [H * M], hypothesis-major
         self.register_buffer("elev0", elev0, persistent=False)
-        a, e = torch.deg2rad(azim0), torch.deg2rad(elev0)
-        self.register_buffer("d0", torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e), torch.cos(e) * torch.cos(a)], -1),
-                             persistent=False)  # [H * M, 3]
+        self.register_buffer("d0", view_directions(azim0, elev0), persistent=False)  # [H * M, 3]
         self.register_buffer("columns", torch.tensor(descriptor_columns(descriptors, self.ks)), persistent=False)
         f = len(self.columns)
         self.scorer = nn.Sequential(nn.BatchNorm1d(f), nn.Linear(f, hidden), nn.BatchNorm1d(hidden), nn.ReLU(inplace=True),

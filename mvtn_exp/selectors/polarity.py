@@ -42,6 +42,8 @@ class ViewPolarity(nn.Module):
     and clears the sums; returns the indices of the views turned round.
     """
 
+    transforms_views = True  # the model maps G's views through it at every selection (``MVTN.select``)
+
     def __init__(self, views: int, min_count: int = 8, z: float = 2.0) -> None:
         super().__init__()
         self.min_count, self.z = int(min_count), float(z)

@@ -93,7 +93,7 @@ class Strategy:
     @classmethod
     def modules(cls, s, views: int) -> dict:
         """Per-shape modules the model keeps for this strategy (buffers in checkpoints), by attribute
-        name; ``MVTN`` (``mvtn_exp/model.py``) takes ``polarity`` and ``hypotheses`` only."""
+        name (``MVTN`` registers each under that name; one with ``transforms_views`` maps G's views)."""
         return {}
 
     @classmethod
