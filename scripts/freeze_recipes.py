@@ -27,7 +27,7 @@ def recipes() -> dict[str, dict]:
     from omegaconf import OmegaConf
 
     from mvtn_exp.config.options import OPTIONS, load
-    from mvtn_exp.config.schema import register_configs
+    from mvtn_exp.config.store import register_configs
     from mvtn_exp.runs.folders import flatten
     from mvtn_exp.runs.settings import is_local
 

@@ -14,7 +14,7 @@ from mvtn_exp.data.collate import collate_shapes
 from mvtn_exp.data.synthetic import SyntheticShapes
 from mvtn_exp.engine import train
 from mvtn_exp.data.datasets import view_report as detail_report
-from mvtn_exp.config.schema import register_configs
+from mvtn_exp.config.store import register_configs
 from mvtn_exp.tasks.robustness import random_rotations, rotate_batch, turn_batch, y_rotation_matrix
 
 from test_train_e2e import _assert_same_run, tiny

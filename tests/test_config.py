@@ -10,7 +10,8 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from mvtn_exp.config.compose import check_overrides, sweep_variants
-from mvtn_exp.config.schema import GROUPS, TrainConfig, register_configs
+from mvtn_exp.config.schema import GROUPS, TrainConfig
+from mvtn_exp.config.store import register_configs
 
 CONF = Path(__file__).resolve().parents[1] / "mvtn_exp" / "conf"
 register_configs()

@@ -13,7 +13,8 @@ from torch.utils.data import Dataset
 
 from mvtn_exp.config.compose import check_overrides
 from mvtn_exp.config.options import OPTIONS, load
-from mvtn_exp.config.schema import OPTION_KINDS, TrainConfig, register_configs
+from mvtn_exp.config.schema import OPTION_KINDS, TrainConfig
+from mvtn_exp.config.store import register_configs
 from mvtn_exp.data.config import DatasetConfig, register
 from mvtn_exp.data.datasets import build_dataset
 from mvtn_exp.engine.trainer import as_config

@@ -8,11 +8,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from mvtn_exp.bench import device_check
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_dry_run_writes_every_stage_as_small_text_records(tmp_path):
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, str(ROOT / "scripts" / "device_check.py"), str(out), "--dry-run"],

@@ -143,6 +143,7 @@ def test_more_processes_than_shapes_in_a_split_is_refused_naming_it():
     check_split_sizes({"train": list(range(96)), "val": list(range(24))}, distributed.World(24, 0))
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_each_process_keeps_its_own_stream_and_resume_with_as_many_is_exact(runs, cache):
     """Rank 1's random stream is not rank 0's (both are in last.pt), and one epoch then a resume
     for the second, both on two processes, ends with exactly the history of the two-epoch run."""

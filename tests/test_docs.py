@@ -191,7 +191,8 @@ INFO_FLAGS = ("--resolve",)
 
 
 def check_train(argv: list[str], capsys, prog: str = "mvtn-train", config_name: str = "train") -> str | None:
-    from mvtn_exp.config.schema import TrainConfig, register_configs
+    from mvtn_exp.config.schema import TrainConfig
+    from mvtn_exp.config.store import register_configs
 
     register_configs()
     if argv[:1] in (["--summary"], ["--resume-sweep"]):
@@ -208,7 +209,7 @@ def check_train(argv: list[str], capsys, prog: str = "mvtn-train", config_name: 
 
 
 def check_eval(argv, capsys):
-    from mvtn_exp.config.schema import register_configs
+    from mvtn_exp.config.store import register_configs
     from mvtn_exp.config.eval_schema import EvalConfig
 
     register_configs()

@@ -93,6 +93,7 @@ ck.os = type("os", (), {**{k: getattr(os, k) for k in dir(os) if not k.startswit
 """
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_sigterm_while_a_checkpoint_is_written_keeps_the_previous_one_and_resume_is_exact(tmp_path):
     """SIGTERM lands while epoch 2's last.pt is being written (its temp file full, not yet moved):
     one line, exit 143, no temp file left, last.pt is epoch 1's whole file, and resuming from it

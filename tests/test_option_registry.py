@@ -12,7 +12,8 @@ import torch
 
 from mvtn_exp.config.compose import check_overrides, list_experiments, list_kinds
 from mvtn_exp.config.options import OPTIONS, list_options, load
-from mvtn_exp.config.schema import TrainConfig, register_configs
+from mvtn_exp.config.schema import TrainConfig
+from mvtn_exp.config.store import register_configs
 from mvtn_exp.models.point_encoders import PointNetConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -19,7 +19,7 @@ from omegaconf import OmegaConf
 from mvtn_exp.engine import train
 from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
 from mvtn_exp.engine.trainer import config_dict
-from mvtn_exp.config.schema import register_configs
+from mvtn_exp.config.store import register_configs
 from mvtn_exp.config.eval_schema import EvalConfig, OcclusionEvalConfig, RetrievalEvalConfig, RotationEvalConfig
 
 register_configs()

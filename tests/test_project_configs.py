@@ -9,7 +9,8 @@ import pytest
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
-from mvtn_exp.config.schema import TrainConfig, register_configs
+from mvtn_exp.config.schema import TrainConfig
+from mvtn_exp.config.store import register_configs
 
 ROOT = Path(__file__).resolve().parents[1]
 register_configs()

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from mvtn_exp.runs.folders import find_runs, flatten
 from mvtn_exp.runs.report import ReportError, load_tables, metric_value, report, row_matches, to_markdown
 from mvtn_exp.engine.trainer import config_dict
-from mvtn_exp.config.schema import register_configs
+from mvtn_exp.config.store import register_configs
 
 register_configs()
 GCN = {"dataset": {"name": "modelnet40"}, "mvnet": {"name": "viewgcn"}, "selector": {"name": "mvtn_spherical", "from_ckpt": None},

@@ -95,16 +95,18 @@ def _reads_of_run_files(path: Path) -> list[str]:
     tree = ast.parse(src)
     in_message = {id(n) for f in ast.walk(tree) if isinstance(f, ast.JoinedStr) for n in ast.walk(f)}
     found = []
+    def text(node) -> str:  # (the segment only where needed: it rescans the source each time)
+        return ast.get_source_segment(src, node) or ""
+
     for node in ast.walk(tree):
-        text = ast.get_source_segment(src, node) or ""
         if isinstance(node, ast.Call):
             name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
-            hit = name in READS and any(f in text for f in RUN_FILES | RUN_FILE_NAMES)
+            hit = name in READS and any(f in text(node) for f in RUN_FILES | RUN_FILE_NAMES)
         else:
             hit = id(node) not in in_message and (isinstance(node, ast.Constant) and node.value in RUN_FILES
                                                   or isinstance(node, ast.Name) and node.id in RUN_FILE_NAMES)
         if hit:
-            found.append(f"{path.relative_to(PACKAGE)}:{node.lineno}: {text[:80]}")
+            found.append(f"{path.relative_to(PACKAGE)}:{node.lineno}: {text(node)[:80]}")
     return found
 
 

@@ -10,7 +10,8 @@ from torch import nn
 from conftest import tiny_config as tiny
 from mvtn_exp.config.compose import check_overrides
 from mvtn_exp.engine.trainer import as_config, train
-from mvtn_exp.config.schema import TrainConfig, register_configs
+from mvtn_exp.config.schema import TrainConfig
+from mvtn_exp.config.store import register_configs
 from mvtn_exp.selectors import REGISTRY, ViewSelector
 from mvtn_exp.selectors.config import LearnedSelectorConfig, register
 

@@ -17,7 +17,7 @@ from mvtn_exp.data.collate import collate_shapes
 from mvtn_exp.data.datasets import build_dataset
 from mvtn_exp.data.synthetic import CacheWarning, random_rotation
 from mvtn_exp.data.synthetic_views import CLASSES, SPLITS, SyntheticViews
-from mvtn_exp.config.schema import register_configs
+from mvtn_exp.config.store import register_configs
 
 COUNTS = (3, 1, 4)
 NPTS = 128

@@ -136,7 +136,7 @@ def test_a_toy_strategy_composed_through_a_yaml_trains_and_pulls_g(toy_pull, tmp
     from hydra import compose as hydra_compose
     from hydra import initialize_config_module
 
-    from mvtn_exp.config.schema import register_configs
+    from mvtn_exp.config.store import register_configs
 
     (tmp_path / "configs" / "selector").mkdir(parents=True)
     (tmp_path / "configs" / "selector" / "toy_pull.yaml").write_text(

@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from ..data.shapes import ShapeError
 from ..runtime.checkpoint import CheckpointMismatch
 from ..evaluation.evaluate import evaluate_checkpoint
-from ..config.schema import register_configs
+from ..config.store import register_configs
 from ..config.eval_schema import EvalConfig
 from ..config.compose import check_overrides
 from .common import check_writable, mark_failed

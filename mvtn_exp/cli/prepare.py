@@ -13,7 +13,8 @@ from omegaconf import OmegaConf
 
 from ..data.datasets import build_dataset
 from ..data.shapes import ShapeError
-from ..config.schema import TrainConfig, register_configs
+from ..config.schema import TrainConfig
+from ..config.store import register_configs
 from ..config.compose import check_overrides
 
 register_configs()

@@ -25,7 +25,8 @@ from ..engine import run_dir as run_dir_state
 from ..engine.jobs import keep_finished_job, launcher_device, launcher_threads, objective_values, usable_cores
 from ..runtime.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
-from ..config.schema import TrainConfig, register_configs, resolve_device
+from ..config.schema import TrainConfig, resolve_device
+from ..config.store import register_configs
 from ..models import pretrained
 from ..render import accel
 from ..config.compose import check_overrides, given, override_key

@@ -387,7 +387,8 @@ def compose_train_config(overrides: list[str], prog: str = "mvtn-train"):
     (``scripts/studies/axis_views.py``): a bad key is refused as ``mvtn-train`` refuses it (one line, exit 2)."""
     from hydra import compose, initialize_config_module
 
-    from .schema import TrainConfig, as_config, register_configs
+    from .schema import TrainConfig, as_config
+    from .store import register_configs
 
     register_configs()
     check_overrides(prog, "train", TrainConfig, overrides, validate=TrainConfig.validate)

@@ -1,7 +1,7 @@
 """Config schemas: one dataclass per config group and the top-level ``TrainConfig`` (``mvtn-eval``'s: ``eval_schema``).
 
 Hydra composes ``mvtn_exp/conf/train.yaml`` (group files under ``conf/<group>/``) on top of these
-schemas, registered in the ConfigStore by ``register_configs``: an unknown key or a wrong type
+schemas, registered in the ConfigStore by ``config/store.register_configs``: an unknown key or a wrong type
 fails at compose time. ``validate`` methods check values (names, ranges) and raise ``ValueError``
 naming the key and the allowed values. Angles are degrees; the world is Y-up.
 
@@ -24,7 +24,7 @@ from ..models import pretrained
 from ..models.multiview import MVCNNConfig, MVNetConfig
 from ..models.precision import check_precision
 from ..models.point_encoders import PointEncoderConfig, PointNetConfig
-from .options import OPTIONS, load
+from .options import OPTIONS
 from ..render.config import RendererConfig
 from ..selectors.config import SelectorConfig
 from ..selectors.mvtn import MVTNSphericalConfig
@@ -279,28 +279,6 @@ def typed_train_config(cfg):
         if kind in options and sub:
             raise ValueError(OPTIONS[kind].foreign_key_message(options[kind].name, sub)) from None
         raise ValueError(str(exc).splitlines()[0]) from None
-
-
-def register_configs() -> None:
-    """Store ``train_schema`` and ``eval_schema`` in Hydra's ConfigStore, and each option's schema
-    as ``schema/<kind>/NAME`` (its ``conf/<kind>/NAME.yaml`` starts from it). The group files are
-    merged into the typed fields of ``TrainConfig``, so each is checked against its schema."""
-    from hydra.core.config_store import ConfigStore
-
-    from omegaconf import OmegaConf
-
-    load()
-    cs = ConfigStore.instance()
-    train = OmegaConf.structured(TrainConfig)
-    for kind in OPTION_KINDS:  # the chosen option's schema merges in (a subclass of the kind's base)
-        train[kind] = OmegaConf.structured(GROUPS[kind])
-    cs.store(name="train_schema", node=train)
-    from .eval_schema import EvalConfig
-
-    cs.store(name="eval_schema", node=EvalConfig)
-    for kind in OPTION_KINDS:
-        for name, option in OPTIONS[kind].items():
-            cs.store(group=f"schema/{kind}", name=name, node=option)
 
 
 def as_config(cfg) -> TrainConfig:
