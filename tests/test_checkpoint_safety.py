@@ -124,3 +124,12 @@ def test_an_npz_is_named_and_a_real_checkpoint_is_not(tmp_path):
     assert checkpoint.describe_non_checkpoint(tmp_path / "ok.pt") is None
     torch.save({"model": {}, "config": {}}, tmp_path / "legacy.pt", _use_new_zipfile_serialization=False)
     assert checkpoint.describe_non_checkpoint(tmp_path / "legacy.pt") is None
+
+
+def test_a_run_folder_given_as_a_checkpoint_is_named_as_a_folder(tmp_path):
+    """``ckpt=RUN`` (the folder, not its file): one line saying so and which file to pass."""
+    with pytest.raises(FileNotFoundError, match="is a folder, not a checkpoint file: it holds no best.pt"):
+        checkpoint.load(tmp_path)
+    (tmp_path / "last.pt").write_bytes(b"")
+    with pytest.raises(FileNotFoundError, match=f"is a folder, not a checkpoint file: pass {tmp_path / 'last.pt'}"):
+        checkpoint.load(tmp_path)

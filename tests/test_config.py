@@ -308,3 +308,21 @@ def test_device_auto_resolves_to_what_the_machine_has(monkeypatch):
     assert resolve_device("auto") == resolve_device(None) == "cpu" and resolve_device("cuda:1") == "cuda:1"
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_device("auto") == "cuda" and resolve_device("cpu") == "cpu"
+
+
+@pytest.mark.parametrize("prog", ["train", "eval", "render", "bench", "prepare"])
+def test_help_into_a_closed_pipe_ends_quietly(prog):
+    """``mvtn-X --help | head -1``: a reader that closed the pipe ends the command with exit 0 and
+    no BrokenPipeError traceback."""
+    import os
+    import subprocess
+    import sys
+
+    r, w = os.pipe()
+    os.close(r)  # the reader is gone before anything is written
+    try:
+        done = subprocess.run([sys.executable, "-m", f"mvtn_exp.cli.{prog}", "--help"], stdout=w, stderr=subprocess.PIPE,
+                              text=True, timeout=120)
+    finally:
+        os.close(w)
+    assert done.returncode == 0 and "Traceback" not in done.stderr and "BrokenPipe" not in done.stderr, done.stderr

@@ -572,3 +572,18 @@ def test_patience_waits_for_the_last_training_stage(cache, tmp_path, monkeypatch
     _scripted_validation(monkeypatch, [0.5, 0.1, 0.1, 0.3, 0.2])
     m = train(tiny(cache, epochs=5, patience=1, **{"mvnet.name": "viewgcn", "mvnet.stages": [3, 2]}), tmp_path)
     assert (m["epochs_trained"], m["stopped_early"], m["best_epoch"], m["best_val_acc"]) == (5, False, 4, 0.3)
+
+
+def test_resuming_a_finished_run_says_nothing_is_left_to_train(cache, full_run, tmp_path):
+    """A resume whose checkpoint already covers ``epochs`` trains nothing and says so, naming how
+    to train longer (not "at epoch 3/2"); its test result is best.pt's again."""
+    import shutil
+
+    run, full = full_run
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    again = train(tiny(cache, ckpt_path=str(copy / "last.pt"), **{"optim.lr": 0.5}), copy)
+    log = (copy / "train.log").read_text()
+    assert "nothing is left to train" in log and f"set epochs above {full['epochs']}" in log
+    assert f"at epoch {full['epochs'] + 1}/{full['epochs']}" not in log
+    assert again["test_acc"] == full["test_acc"] and again["epochs_trained"] == full["epochs_trained"]

@@ -115,9 +115,9 @@ def _app(cfg) -> list[float] | None:
         train(tcfg, run_dir)
     except Interrupted as exc:
         last = run_dir / "last.pt"
-        how = (f"resume with: mvtn-train ckpt_path={last}" if last.is_file()
-               else "no epoch had finished, nothing to resume: start again")
-        print(f"mvtn-train: interrupted by {exc}; the last finished epoch is saved, {how}", file=sys.stderr)
+        how = (f"the last finished epoch is saved, resume with: mvtn-train ckpt_path={last}" if last.is_file()
+               else "no epoch had finished, nothing is saved to resume from: start again")
+        print(f"mvtn-train: interrupted by {exc}; {how}", file=sys.stderr)
         with open(run_dir / "train.log", "a") as f:
             f.write(f"mvtn-train: interrupted by {exc}; {how}\n")
         if not (who() and (run_dir / "status.json").is_file()):  # (torchrun stops the others when one fails:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import os
 import re
 import sys
 from pathlib import Path
@@ -107,6 +108,16 @@ def _choices(compose, config_name: str, overrides: list[str]) -> dict:
     except Exception:
         return {}
     return {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra")}
+
+
+def out(text: str) -> None:
+    """Print ``text`` to stdout; a reader that closes the pipe early (``--help | head -1``) ends the
+    command quietly, exit 0, instead of a ``BrokenPipeError`` traceback."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (nothing more reaches the closed pipe)
+        sys.exit(0)
 
 
 def override_key(override: str) -> str:
@@ -215,7 +226,7 @@ def print_list(prog: str, argv: list[str], config_module: str = CONF_MODULE) -> 
     rows = list_experiments(config_module) if kind == "experiment" else list_options(kind)
     width = max((len(name) for name, _ in rows), default=0)
     for name, text in rows:
-        print(f"{name:<{width}}  {text}".rstrip())
+        out(f"{name:<{width}}  {text}".rstrip())
     return 0
 
 
@@ -270,10 +281,10 @@ def check_overrides(prog: str, config_name: str, schema, argv: list[str],
     run ``validate(cfg_object)``; on a config error print one line naming the key, the config
     file and the allowed keys / options / values, and exit with code 2 (no traceback)."""
     if "--version" in argv:
-        print(f"{prog} (mvtn-exp) {package_version()}")
+        out(f"{prog} (mvtn-exp) {package_version()}")
         sys.exit(0)
     if "--help" in argv or "-h" in argv:
-        print(project_help(prog, config_name, schema, config_module, overrides=argv))
+        out(project_help(prog, config_name, schema, config_module, overrides=argv))
         sys.exit(0)
     if any(a == "--list" or a.startswith("--list=") for a in argv):
         sys.exit(print_list(prog, argv, config_module))

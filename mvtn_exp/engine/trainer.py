@@ -281,7 +281,9 @@ def build_state(cfg: TrainConfig, run_dir: Path, build_model, datasets: dict, de
         seeding.seed_everything(seeding.for_rank(cfg.seed, world.rank, world.size))
     if resume is not None:
         state.resume(resume, cfg.ckpt_path, run_dir, lambda name, epoch: group_factor(cfg, name, epoch), cfg.seed)
-        say(run_dir, f"resumed from {cfg.ckpt_path} at epoch {state.start + 1}/{cfg.epochs}")
+        say(run_dir, f"resumed from {cfg.ckpt_path} at epoch {state.start + 1}/{cfg.epochs}" if state.start < cfg.epochs
+            else f"resumed from {cfg.ckpt_path}: its {state.start} epochs cover epochs={cfg.epochs}, nothing is left to "
+                 f"train; best.pt is tested again (set epochs above {state.start} to train longer)")
         announce(cfg, device)
     return state, g_training
 

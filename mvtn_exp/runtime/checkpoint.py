@@ -94,6 +94,10 @@ def load(path, map_location="cpu") -> dict:
     Always ``torch.load(weights_only=True)``: only tensors and plain Python containers are
     unpickled, so a file carrying code (any other pickled object) is refused, never run."""
     path = Path(path)
+    if path.is_dir():
+        found = [name for name in ("best.pt", "last.pt") if (path / name).is_file()]
+        hint = f"pass {path / found[0]}" if found else "it holds no best.pt or last.pt"
+        raise FileNotFoundError(f"checkpoint {str(path)!r} is a folder, not a checkpoint file: {hint}")
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r}: no such file")
     what = describe_non_checkpoint(path)
