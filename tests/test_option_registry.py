@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from mvtn_exp.config.compose import check_overrides, list_experiments, list_kinds
+from mvtn_exp.config.compose import check_overrides
+from mvtn_exp.config.help_text import list_experiments, list_kinds
 from mvtn_exp.config.options import OPTIONS, list_options, load
 from mvtn_exp.config.schema import TrainConfig
 from mvtn_exp.config.store import register_configs

@@ -1,7 +1,7 @@
 """Where a result came from: package and library versions, the code's git commit, device, host, command."""
 from __future__ import annotations
 
-from ..config.compose import package_version
+from ..config.help_text import package_version
 
 import platform
 import socket
