@@ -239,6 +239,7 @@ def test_a_setting_proposed_again_is_told_its_objectives_without_training(tmp_pa
     ("{renderer:wire}", "not in"),
     ("{colour:red}", "colour is not a key the search samples"),
 ])
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_a_start_point_outside_the_space_is_one_line_exit_2(tmp_path, point, needle):
     r = _search(tmp_path, "hydra.sweeper.n_trials=1", "hydra.sweeper.n_jobs=1", f"hydra.sweeper.start_points=[{point}]")
     assert r.returncode == 2, r.stderr[-2000:]

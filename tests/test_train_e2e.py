@@ -283,6 +283,7 @@ def test_cli_multirun_summary(cache, tmp_path):
     assert len(settings) == 2 and all("| 2 | 0 |" in ln for ln in settings), settings
 
 
+@pytest.mark.slow  # (longer than 15 s on 2 cores: make test-all)
 def test_cli_resume_from_the_checkpoint_alone_goes_on_in_place(cache, tmp_path):
     """``mvtn-train ckpt_path=RUN/last.pt epochs=2``: the checkpoint's own config (no retyping),
     the same run dir, the first run's results kept."""
