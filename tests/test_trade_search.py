@@ -217,6 +217,7 @@ def test_the_search_starts_at_its_points_hands_optuna_the_objectives_and_resumes
     assert r.stderr.count("finished before; kept") == 4
 
 
+@pytest.mark.slow  # (about 10 s each on 2 cores: make test-all)
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_a_setting_proposed_again_is_told_its_objectives_without_training(tmp_path, jobs):
     """A space of one setting: the first trial trains, every later proposal repeats it and launches
