@@ -137,6 +137,10 @@ def test_a_launcher_that_is_not_installed_is_one_line(tmp_path):
 def test_slurm_launcher_config_carries_the_cluster_settings():
     from hydra import compose, initialize_config_module
 
+    from mvtn_exp.config.store import register_configs
+
+    register_configs()  # (the schemas the config files name; the CLI registers them at import)
+
     with initialize_config_module(version_base="1.3", config_module="mvtn_exp.conf"):
         cfg = compose("train", overrides=["hydra/launcher=slurm", "hydra.launcher.partition=gpu"],
                       return_hydra_config=True)

@@ -73,13 +73,17 @@ def test_labels_counts_orientation_normalisation(tree, tmp_path):
         assert pts.shape == (64, 3) and np.linalg.norm(pts, axis=1).max() <= 1 + 1e-5
 
 
-def test_broken_files_are_skipped_and_named(tree, tmp_path):
-    with pytest.warns(UserWarning, match="skipped 4 of 10"):
+def test_broken_files_are_skipped_and_named(tree, tmp_path, caplog):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # reported in log lines, not warnings
         train = ModelNetMeshes(tree, "train", cache_dir=tmp_path / "cache", num_points=64, val_fraction=0.0,
                                progress=False)
     assert len(train) == 6 and len(train.skipped) == 4
+    lines = [r.getMessage() for r in caplog.records]
+    assert any(line.endswith(": skipped 4 of 10 shapes") for line in lines)
     for name in ("chair_0100.off", "chair_0101.off", "chair_0102.off", "chair_0103.off"):
         assert any(name in reason for reason in train.skipped), name
+        assert sum(name in line for line in lines) == 1, name  # each named once
     assert all(not n.startswith("chair_01") for n in train.names)
 
 
@@ -222,7 +226,7 @@ def test_retrieval_database_is_the_whole_official_train_split(tree, tmp_path):
 
 def test_cache_is_keyed_by_root_and_contents_not_file_names(tmp_path):
     """Same file names, other contents under another root: another cache, other data; a changed
-    file rebuilds too (the key holds the root and every file's size and modification time)."""
+    file rebuilds too (the key holds the root and every file's bytes)."""
     a = _tree(tmp_path / "A", broken=False)
     b = tmp_path / "B"
     for f in a.rglob("*.off"):  # B: the same names, every shape twice as long along x

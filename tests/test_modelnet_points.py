@@ -2,6 +2,7 @@
 class order, counts, held-out val, orientation, normalisation, fixed points, collate, bad input."""
 from __future__ import annotations
 
+import logging
 import warnings
 
 import h5py
@@ -86,11 +87,19 @@ def load(root, split, fmt, **kw):
 
 
 def recorded(fn):
-    """``fn()``'s result and the messages of every warning it gave."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        out = fn()
-    return out, [f"{w.category.__name__}: {w.message}" for w in caught]
+    """``fn()``'s result and the messages of every warning (``"CountWarning: ..."``) and every data
+    log line (``"log: ..."``, where skipped clouds are reported) it gave."""
+    logger, lines = logging.getLogger("mvtn_exp.data"), []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: lines.append(f"log: {record.getMessage()}")
+    logger.addHandler(handler)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            out = fn()
+    finally:
+        logger.removeHandler(handler)
+    return out, [f"{w.category.__name__}: {w.message}" for w in caught] + lines
 
 
 def items(ds):
@@ -208,7 +217,7 @@ def test_normal_resampled_reads_only_the_lines_it_uses(tmp_path):
     f.write_text("\n".join(lines) + "\n")
     assert not load(root, "test", "normal_resampled", num_points=32).skipped
     ds, msgs = recorded(lambda: load(root, "test", "normal_resampled", num_points=48))
-    assert any("skipped 1 of 4 clouds" in m for m in msgs)
+    assert "log: ModelNet40 normal_resampled test: skipped 1 of 4 clouds" in msgs
     assert len(ds.skipped) == 1 and "airplane_0627.txt: line 40" in ds.skipped[0]
 
 
@@ -294,7 +303,9 @@ def test_bad_lines_are_skipped_and_named_or_refused_when_strict(tmp_path):
     f.write_text("\n".join(f.read_text().splitlines()[:10]) + "\n")  # 10 points only
     ds, msgs = recorded(lambda: ModelNetPoints(root, "train", format="normal_resampled", num_points=NR_POINTS,
                                                val_fraction=0.0))
-    assert any(m.startswith("UserWarning: ModelNet40 normal_resampled train: skipped 4 of 9 clouds") for m in msgs)
+    assert "log: ModelNet40 normal_resampled train: skipped 4 of 9 clouds" in msgs
+    assert not [m for m in msgs if m.startswith("UserWarning")]  # each cloud named once, in its log line
+    assert sorted(m for m in msgs if m.startswith("log: skipping ")) == sorted(f"log: skipping {s}" for s in ds.skipped)
     assert len(ds) == 5 and len(ds.skipped) == 4
     for reason in ("night_stand_0002.txt: line 5: not comma-separated numbers", "airplane_0003.txt: line 7: NaN",
                    "flower_pot_0002.txt: line 1: 2 values", "flower_pot_0001.txt: 10 points, fewer than num_points=48"):
@@ -309,7 +320,7 @@ def test_list_ids_without_a_known_class_are_skipped_and_named(tmp_path):
     f = root / "modelnet40_test.txt"
     f.write_text(f.read_text() + "chair_0001\nnight_stand\n")
     ds, msgs = recorded(lambda: load(root, "test", "normal_resampled"))
-    assert any("UserWarning: ModelNet40 normal_resampled test: skipped 2 of 6 clouds" in m for m in msgs)
+    assert "log: ModelNet40 normal_resampled test: skipped 2 of 6 clouds" in msgs
     assert len(ds) == 4 and len(ds.skipped) == 2
     assert "modelnet40_test.txt: line 5: id 'chair_0001'" in ds.skipped[0] and "line 6" in ds.skipped[1]
     with pytest.raises(ShapeFileError, match="line 5"):
@@ -321,7 +332,7 @@ def test_h5_nan_cloud_is_skipped_or_refused_and_malformed_files_raise(tmp_path):
     with h5py.File(root / "ply_data_test0.h5", "r+") as fh:
         fh["data"][1, 7, 0] = np.nan
     ds, msgs = recorded(lambda: ModelNetPoints(root, "test", format="ply_hdf5_2048"))
-    assert any(m.startswith("UserWarning: ModelNet40 ply_hdf5_2048 test: skipped 1 of 3 clouds") for m in msgs)
+    assert "log: ModelNet40 ply_hdf5_2048 test: skipped 1 of 3 clouds" in msgs
     assert ds.names == ["ply_data_test0_0000", "ply_data_test0_0002"]
     assert "ply_data_test0.h5: key 'data' row 1 (ply_data_test0_0001): 1 points are NaN" in ds.skipped[0]
     with pytest.raises(ShapeFileError, match="ply_data_test0.h5: key 'data' row 1"):

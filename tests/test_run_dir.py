@@ -79,7 +79,8 @@ def test_a_second_run_into_a_busy_run_dir_is_refused(tmp_path):
         assert holder.stdout.readline().strip() == "locked"
         r = _cli([*TINY, f"dataset.root={tmp_path / 'cache'}", f"hydra.run.dir={busy}"])
         assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
-        assert f"another run is using this folder (pid {holder.pid})" in r.stderr
+        assert f"another run is using this folder: pid {holder.pid} (" in r.stderr
+        assert f"stop it with `kill {holder.pid}`" in r.stderr and "give this run another hydra.run.dir" in r.stderr
         assert sorted(p.name for p in busy.iterdir()) == [rd.LOCK_FILE]  # no Hydra record written over it
     finally:
         holder.kill()
@@ -96,6 +97,9 @@ def test_lock_is_per_process_and_check_new_run_removes_only_results(tmp_path):
         (tmp_path / name).write_text("x")
     with pytest.raises(rd.RunDirTaken, match="overwrite=true"):
         rd.check_new_run(tmp_path, overwrite=False)
-    rd.check_new_run(tmp_path, overwrite=True)
+    (tmp_path / "tb").mkdir()
+    (tmp_path / "tb" / "events.out.tfevents.1").write_text("x")
+    rd.check_new_run(tmp_path, overwrite=True)  # the new run's log and curves start empty
     assert sorted(p.name for p in tmp_path.iterdir()) == [rd.LOCK_FILE, "train.log"]
+    assert (tmp_path / "train.log").read_text() == ""
     rd.check_new_run(tmp_path / "empty", overwrite=False)  # nothing there: nothing to refuse

@@ -228,14 +228,18 @@ def test_labels_out_of_range_are_refused(tmp_path, bad):
         _load(root, "test", "obj_bg")
 
 
-def test_nan_cloud_skipped_and_counted_or_refused_in_strict_mode(tmp_path, monkeypatch):
-    monkeypatch.setitem(scanobjectnn.EXPECTED, "obj_bg", {"train": 2309, "test": 15})  # only the NaN warning
+def test_nan_cloud_skipped_and_counted_or_refused_in_strict_mode(tmp_path, monkeypatch, caplog):
+    monkeypatch.setitem(scanobjectnn.EXPECTED, "obj_bg", {"train": 2309, "test": 15})  # no count warning
     data = _clouds(15, 0)
     data[4, 100, 1] = np.nan
     data[9, 5] = np.inf
     root = _one_file(tmp_path, data=data)
-    with pytest.warns(UserWarning, match=r"skipped 2 of 15 clouds: .*test_objectdataset\.h5: key 'data' row 4"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # each cloud in one log line, no warning
         ds = ScanObjectNN(root, "test", variant="obj_bg")
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == [f"skipping {ds.skipped[0]}", f"skipping {ds.skipped[1]}", "ScanObjectNN obj_bg test: skipped 2 of 15 clouds"]
+    assert "test_objectdataset.h5: key 'data' row 4" in lines[0]
     assert len(ds) == 13 and len(ds.skipped) == 2
     assert "row 4" in ds.skipped[0] and "row 9" in ds.skipped[1]
     assert {_row(n) for n in ds.names} == set(range(15)) - {4, 9}

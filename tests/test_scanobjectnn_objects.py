@@ -74,7 +74,7 @@ def test_points_background_and_a_fixed_choice(tmp_path, variant):
     assert np.array_equal(again.numpy(), pts) and not np.array_equal(other.numpy(), pts)
 
 
-def test_refused_inputs_name_the_file(tmp_path):
+def test_refused_inputs_name_the_file(tmp_path, caplog):
     with pytest.raises(DatasetNotFound, match="split_new.txt"):
         ScanObjectNNObjects(tmp_path, "train", "obj_bg")
     _tree(tmp_path, OBJECTS)
@@ -82,9 +82,10 @@ def test_refused_inputs_name_the_file(tmp_path):
         ScanObjectNNObjects(tmp_path, "train", "pb_t50_rs")
     bad = tmp_path / "object_dataset" / CLASSES[0] / "000_00000.bin"
     bad.write_bytes(bad.read_bytes()[:-4])  # a truncated file
-    with pytest.warns(UserWarning, match="skipped 1 of"):
-        ds = ScanObjectNNObjects(tmp_path, "train", "obj_bg", val_fraction=0.0)
+    ds = ScanObjectNNObjects(tmp_path, "train", "obj_bg", val_fraction=0.0)
     assert "000_00000.bin" not in ds.names and "000_00000.bin" in ds.skipped[0]
+    assert [r.getMessage() for r in caplog.records if "000_00000.bin" in r.getMessage()] == [f"skipping {ds.skipped[0]}"]
+    assert any(r.getMessage().startswith("ScanObjectNN obj_bg train: skipped 1 of") for r in caplog.records)
     with pytest.raises(ShapeFileError, match="000_00000.bin: .* bytes; expected"):
         ScanObjectNNObjects(tmp_path, "train", "obj_bg", strict=True)
     (tmp_path / "object_dataset" / "split_new.txt").write_text("001_00001.bin\t99\tt\n")

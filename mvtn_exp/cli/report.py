@@ -4,8 +4,9 @@ Reads every run and evaluation below the folders (``mvtn-train`` and ``mvtn-eval
 dirs), fills each row of ``paper_tables.yaml`` from the runs that match it, prints the Markdown
 and writes ``report.md`` / ``report.json`` into ``--out`` (default: ``outputs/report``). Without a
 folder it prints the tables with what each row needs; ``--paper`` prints the paper's numbers alone
-(each with where the paper gives it: the text of ``docs/paper.md``). A missing folder or a
-malformed tables file: one line on stderr, exit code 2.
+(each with where the paper gives it: the text of ``docs/paper.md``). A missing folder, a folder
+with no run in it or a malformed tables file: one line ``mvtn-report: error: ...`` on stderr, exit
+code 2, nothing written.
 """
 from __future__ import annotations
 
@@ -13,9 +14,10 @@ import argparse
 import sys
 
 from ..runs.sides import CompareError
-from ..runs.folders import FolderError, find_runs
+from ..runs.folders import FolderError
 from ..engine.provenance import package_version
-from ..runs.report import TABLES_FILE, ReportError, load_tables, paper_markdown, report, to_markdown, write
+from ..runs.report import (TABLES_FILE, ReportError, load_tables, paper_markdown, read_folders, report, to_markdown,
+                           write)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,11 +37,11 @@ def main(argv=None) -> None:
         if args.paper:
             print(paper_markdown(tables), end="")
             return
-        runs = find_runs(args.folders)
+        runs = read_folders(args.folders)
         result = report(tables, runs)
         md, _ = write(result, args.out)
     except (ReportError, CompareError, FolderError, OSError) as e:
-        print(f"mvtn-report: {e}", file=sys.stderr)
+        print(f"mvtn-report: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     print(to_markdown(result))
     if args.folders and result["unmatched"]:

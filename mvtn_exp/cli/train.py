@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
-import signal
 import sys
 import time
 from pathlib import Path
@@ -22,6 +20,7 @@ from omegaconf import OmegaConf
 from ..data.shapes import ShapeError
 from ..runtime import checkpoint, distributed
 from ..engine import run_dir as run_dir_state
+from ..engine import stopping
 from ..engine.jobs import keep_finished_job, launcher_device, launcher_threads, objective_values, usable_cores
 from ..runtime.checkpoint import CheckpointMismatch
 from ..engine.trainer import TrainingDiverged, as_config, train
@@ -34,18 +33,6 @@ from .common import check_writable, mark_failed, os_error_text
 
 register_configs()
 EXIT_CODES = {TrainingDiverged: 3}
-
-
-class Interrupted(Exception):
-    """SIGINT / SIGTERM arrived: stop now; ``last.pt`` of the last finished epoch stays intact."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-def _raise_interrupted(signum, frame):
-    raise Interrupted(signum)
 
 
 def who() -> str:
@@ -89,21 +76,45 @@ def resume_config(cfg, overrides: list[str], own_command: bool = False) -> Train
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def _app(cfg) -> list[float] | None:
+    """One run, or one job of a sweep (in a launcher's worker, or in the sweep's own process one
+    after the other). A sweep job ends by returning, whatever happened (its status says what),
+    with its signal handlers and its run dir's lock given back (``engine/stopping.py``)."""
     hc = HydraConfig.get()
-    run_dir = Path(hc.runtime.output_dir)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, _raise_interrupted)
+    run_dir, multirun = Path(hc.runtime.output_dir), hc.mode == RunMode.MULTIRUN
+    if multirun and stopping.sweep_stopping():
+        return None  # the sweep was stopped before this job started: it resumes with --resume-sweep
+    with stopping.job_signals():
+        try:
+            return _job(cfg, hc, run_dir, multirun)
+        finally:
+            if multirun:
+                run_dir_state.release(run_dir)
+
+
+def _lock(run_dir: Path, multirun: bool) -> bool:
+    """Take the run dir's lock (held since ``main`` for a named run dir; sweep jobs take theirs
+    here); False when another process holds it (said in one line)."""
+    sweep = run_dir.parent
+    advice = (f"let the sweep that runs it end (or stop it), then: mvtn-train --resume-sweep {sweep}" if multirun
+              else "give this run another hydra.run.dir")
     try:
-        if distributed.from_env().main:
-            run_dir_state.lock(run_dir)  # held since main() for a named run dir; sweep jobs take theirs here
+        note = run_dir_state.lock(run_dir, advice) if distributed.from_env().main else None
     except run_dir_state.RunDirBusy as exc:
         print(f"mvtn-train: error: {exc}", file=sys.stderr)
-        if hc.mode == RunMode.MULTIRUN:
-            return
+        return False
+    if note:
+        print(f"mvtn-train: {note}", file=sys.stderr)
+    return True
+
+
+def _job(cfg, hc, run_dir: Path, multirun: bool) -> list[float] | None:
+    if not _lock(run_dir, multirun):
+        if multirun:
+            return None
         sys.exit(2)
     try:
         given = cfg.ckpt_path
-        if keep_finished_job(cfg, run_dir, hc.mode == RunMode.MULTIRUN):
+        if keep_finished_job(cfg, run_dir, multirun):
             return objective_values(run_dir, cfg.objectives)
         if cfg.ckpt_path:  # (a finished run's metrics.json is kept aside once the resume is accepted)
             tcfg = resume_config(cfg, list(hc.overrides.task), own_command=not given)
@@ -111,17 +122,12 @@ def _app(cfg) -> list[float] | None:
             tcfg = OmegaConf.to_object(cfg)
         if tcfg.threads is None:  # parallel local sweep: split the cores between the jobs
             tcfg.threads = launcher_threads(hc.launcher, usable_cores())
-        tcfg.device = launcher_device(hc.launcher, tcfg.device, hc.job.num if hc.mode == RunMode.MULTIRUN else None)
+        tcfg.device = launcher_device(hc.launcher, tcfg.device, hc.job.num if multirun else None)
         train(tcfg, run_dir)
-    except Interrupted as exc:
-        last = run_dir / "last.pt"
-        how = (f"the last finished epoch is saved, resume with: mvtn-train ckpt_path={last}" if last.is_file()
-               else "no epoch had finished, nothing is saved to resume from: start again")
-        print(f"mvtn-train: interrupted by {exc}; {how}", file=sys.stderr)
-        with open(run_dir / "train.log", "a") as f:
-            f.write(f"mvtn-train: interrupted by {exc}; {how}\n")
-        if not (who() and (run_dir / "status.json").is_file()):  # (torchrun stops the others when one fails:
-            mark_failed(run_dir, "interrupted", how)               # that one's reason stays the run's status)
+    except stopping.Interrupted as exc:
+        interrupted(exc, run_dir, multirun)
+        if multirun:
+            return None
         sys.exit(128 + exc.signum)
     except RuntimeError as exc:
         if not peer_stopped(exc) or os.environ.get("HYDRA_FULL_ERROR") == "1":
@@ -136,12 +142,34 @@ def _app(cfg) -> list[float] | None:
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise  # the full traceback, on request
         code = failed(exc, cfg, hc, run_dir)
-        if hc.mode == RunMode.MULTIRUN:  # recorded for the sweep summary: go on with the next job
-            return
+        if multirun:  # recorded for the sweep summary: go on with the next job
+            return None
         sys.exit(code)
     if distributed.from_env().main:
         print(run_dir / "metrics.json")
     return objective_values(run_dir, tcfg.objectives)
+
+
+def interrupted(exc: stopping.Interrupted, run_dir: Path, multirun: bool) -> None:
+    """The run's one line (stderr and ``train.log``) and its status; a sweep job also stops the
+    sweep when it ran in the sweep's own process (the next jobs must not start)."""
+    last = run_dir / "last.pt"
+    if multirun:
+        how = ("the last finished epoch is saved" if last.is_file() else "no epoch had finished") + \
+            f"; the sweep resumes with: mvtn-train --resume-sweep {run_dir.parent}"
+        stopping.stop_sweep(exc.signum)
+    else:
+        how = (f"the last finished epoch is saved, resume with: mvtn-train ckpt_path={last}" if last.is_file()
+               else "no epoch had finished, nothing is saved to resume from: start again")
+    line = f"mvtn-train: {f'job {run_dir.name} ' if multirun else ''}interrupted by {exc}; {how}"
+    print(line, file=sys.stderr)
+    try:
+        with open(run_dir / "train.log", "a") as f:
+            f.write(line + "\n")
+    except OSError:
+        pass
+    if not (who() and (run_dir / "status.json").is_file()):  # (torchrun stops the others when one fails:
+        mark_failed(run_dir, "interrupted", how)               # that one's reason stays the run's status)
 
 
 def failed(exc: Exception, cfg, hc, run_dir: Path) -> int:
@@ -149,11 +177,15 @@ def failed(exc: Exception, cfg, hc, run_dir: Path) -> int:
     marked failed; returns the exit code. A refused resume changes nothing on disk."""
     if cfg.ckpt_path and isinstance(exc, CheckpointMismatch):
         print(f"mvtn-train: error: {exc}", file=sys.stderr)
-        if Path(hc.output_subdir or "").name.startswith("resumed-"):
-            shutil.rmtree(run_dir / hc.output_subdir, ignore_errors=True)  # this command's Hydra record
+        if BEFORE_RESUME:  # resumed in place: the folder goes back to what it held before this command
+            run_dir_state.undo_since(run_dir, BEFORE_RESUME[0])
         return 2
     kind = "training diverged" if isinstance(exc, TrainingDiverged) else "error"
     text = os_error_text(exc) if isinstance(exc, OSError) else str(exc)
+    if isinstance(exc, OSError) and (run_dir / "last.pt").is_file():  # (a full disk in epoch 2, say)
+        text += "; the last finished epoch is saved, " + (
+            f"the sweep resumes with: mvtn-train --resume-sweep {run_dir.parent}" if hc.mode == RunMode.MULTIRUN
+            else f"resume with: mvtn-train ckpt_path={run_dir / 'last.pt'}")
     print(f"mvtn-train: {kind}{who()}: {text}", file=sys.stderr)
     try:
         with open(run_dir / "train.log", "a") as f:  # the run's record keeps the reason too
@@ -162,6 +194,9 @@ def failed(exc: Exception, cfg, hc, run_dir: Path) -> int:
         pass  # (a full disk: stderr is all there is)
     mark_failed(run_dir, kind, text)  # no run dir is left looking like an unfinished run
     return EXIT_CODES.get(type(exc), 1 if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError) else 2)
+
+
+BEFORE_RESUME: list[dict] = []  # the run folder as it was before a resume in place (``run_dir.snapshot``)
 
 
 def resume_in_place(argv: list[str]) -> list[str]:
@@ -174,8 +209,14 @@ def resume_in_place(argv: list[str]) -> list[str]:
     if not Path(ckpt).is_file():
         print(f"mvtn-train: error: ckpt_path={ckpt}: no such checkpoint file", file=sys.stderr)
         sys.exit(2)
+    try:
+        checkpoint.load(ckpt)  # an unreadable or foreign file is refused before anything is written
+    except (CheckpointMismatch, OSError) as exc:
+        print(f"mvtn-train: error: ckpt_path={ckpt}: {exc}", file=sys.stderr)
+        sys.exit(2)
     if any(a.startswith("hydra.run.dir=") for a in argv):
         return argv
+    BEFORE_RESUME[:] = [run_dir_state.snapshot(Path(ckpt).resolve().parent)]
     return [*argv, f"hydra.run.dir={Path(ckpt).resolve().parent}",
             f"hydra.output_subdir=.hydra/resumed-{time.strftime('%Y%m%d-%H%M%S')}"]
 
@@ -280,16 +321,23 @@ def resume_sweep(argv: list[str]) -> list[str]:
 def validate_for_training(cfg: TrainConfig) -> TrainConfig:
     """``TrainConfig.validate``, then the files a new run reads must exist: ``backbone.weights`` and
     ``selector.from_ckpt``, and ``renderer.compile=true`` must be able to run on ``device`` (one line
-    naming the key; a stored config is not checked for them)."""
+    naming the key; a stored config is not checked for them). A local ``backbone.weights`` file must
+    load into the backbone (``pretrained.check_file``), else one line ``mvtn-train: error:
+    backbone.weights=PATH: ...`` and exit code 2, before any run folder exists."""
     cfg.validate()
     if cfg.renderer.compile:
         accel.require(resolve_device(cfg.device))
     if pretrained.is_source(cfg.backbone.weights):  # downloaded once into torch's hub cache (before the run folder)
         pretrained.resolve(cfg.backbone.name, cfg.backbone.weights)
-    for key, path in (("backbone.weights", cfg.backbone.weights), ("selector.from_ckpt", getattr(cfg.selector, "from_ckpt", None))):
-        if path and not pretrained.is_source(path) and not Path(path).is_file():
-            expected = f"a local file, or one of {list(pretrained.SOURCES)}" if key == "backbone.weights" else "a local file"
-            raise ValueError(f"{key}={path!r}: no such file ({expected})")
+    elif cfg.backbone.weights:
+        try:
+            pretrained.check_file(cfg.backbone.name, cfg.backbone.weights)
+        except pretrained.WeightsFileError as exc:
+            print(f"mvtn-train: error: {exc}", file=sys.stderr)
+            sys.exit(2)
+    path = getattr(cfg.selector, "from_ckpt", None)
+    if path and not Path(path).is_file():
+        raise ValueError(f"selector.from_ckpt={path!r}: no such file (a local file)")
     return cfg
 
 
@@ -303,7 +351,31 @@ def main() -> None:
     check_writable("mvtn-train", sys.argv[1:])
     claim_run_dir(sys.argv[1:])
     sys.argv[1:] = shared_run_dir(sys.argv[1:])
-    _app()
+    if not any(a in ("-m", "--multirun") for a in sys.argv[1:]):
+        _app()
+        return
+    with stopping.SweepStop() as stop:
+        _app()
+    if stop.signum is not None:
+        sys.exit(sweep_interrupted(stop.signum))
+
+
+def sweep_interrupted(signum: int) -> int:
+    """The stopped sweep's one line (its summary is written): how many jobs finished and how the
+    others resume; returns the exit code (128 + the signal's number)."""
+    from ..runs.sweep import collect, expected_jobs
+
+    sweep = stopping.current_sweep_dir()
+    name = stopping.signal.Signals(signum).name
+    if sweep is None or not sweep.is_dir():
+        print(f"mvtn-train: sweep interrupted by {name} before any job started", file=sys.stderr)
+        return 128 + signum
+    rows = collect(sweep)
+    total = max(len(rows), expected_jobs(sweep) or 0)
+    done = sum(r.get("status") == "ok" for r in rows)
+    print(f"mvtn-train: sweep interrupted by {name}: {done} of {total} jobs finished (summary: "
+          f"{sweep / 'summary.md'}); the others resume with: mvtn-train --resume-sweep {sweep}", file=sys.stderr)
+    return 128 + signum
 
 
 if __name__ == "__main__":

@@ -79,17 +79,35 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             mesh = trimesh.load(path, force="mesh", process=False, skip_materials=True)
         except Exception as exc:
             raise ShapeFileError(f"{path}: trimesh could not read it as a mesh ({exc})") from None
-        if not hasattr(mesh, "faces"):
-            raise ShapeFileError(f"{path}: holds no triangle mesh (a point cloud? use a point file)")
-        verts, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-    check_mesh(path, verts, faces)
-    return verts, faces
+        verts, faces = np.asarray(mesh.vertices, np.float64).reshape(-1, 3), np.asarray(mesh.faces, np.int64)
+        if len(faces) == 0:  # forced to a mesh, a file of bare vertices comes back with none: count them
+            verts = _bare_vertices(path)
+    check_mesh(path, verts, faces.reshape(-1, 3))
+    return verts, faces.reshape(-1, 3)
+
+
+def _bare_vertices(path: Path) -> np.ndarray:
+    """The vertices ``[V, 3]`` of a mesh file that has no faces (trimesh reads it as a point cloud,
+    or a scene of them), so a refusal can say how many there are."""
+    import trimesh
+
+    try:
+        obj = trimesh.load(path, process=False, skip_materials=True)
+    except Exception:
+        return np.zeros((0, 3))
+    parts = obj.geometry.values() if isinstance(obj, trimesh.Scene) else [obj]
+    verts = [np.asarray(getattr(g, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3) for g in parts]
+    return np.concatenate(verts) if verts else np.zeros((0, 3))
 
 
 def check_mesh(name, verts: np.ndarray, faces: np.ndarray) -> None:
-    """Refuse meshes that would render empty or wrong, naming the file."""
-    if len(verts) == 0 or len(faces) == 0:
-        raise ShapeFileError(f"{name}: empty mesh ({len(verts)} vertices, {len(faces)} faces)")
+    """Refuse meshes that would render empty or wrong: ShapeFileError naming the file and what it
+    holds (``<file>: 3 vertices and no faces; expected a triangle mesh``)."""
+    if len(verts) == 0:
+        raise ShapeFileError(f"{name}: empty mesh (0 vertices, {len(faces)} faces)")
+    if len(faces) == 0:
+        raise ShapeFileError(f"{name}: {len(verts)} vertices and no faces; expected a triangle mesh "
+                             "(a point cloud? use a point file)")
     if not np.isfinite(verts).all():
         raise ShapeFileError(f"{name}: {int((~np.isfinite(verts)).any(1).sum())} vertices are NaN or Inf")
     if faces.min() < 0 or faces.max() >= len(verts):

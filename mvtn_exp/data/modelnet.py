@@ -4,15 +4,23 @@ Preprocessing (as the paper): rotate -90 degrees about X (the files are Z-up; we
 the bounding box, scale into the unit sphere, simplify with fast-simplification to at most
 ``max_vertices`` vertices (the paper used 20,000), and sample ``num_points`` surface points fixed
 per shape (seeded by the file name), so evaluation is deterministic. A shape that cannot be used
-(unreadable file, NaN coordinates, indices out of range, only zero-area faces) is reported with its
-path and skipped (counted; listed in the cache's ``skipped`` record), or raises with ``strict``.
+(unreadable file, NaN coordinates, indices out of range, no faces, only zero-area faces) is reported
+in one log line with its path and the reason and skipped (counted; listed in the cache's ``skipped``
+record, in file order), or raises ShapeFileError with that reason with ``strict``.
 
 Cache: ``<cache_dir>/<dataset>_<split>_<key>.npz`` (packed arrays, ``packed.py``), ``key`` hashing
-every setting and the preprocessing version. One process at a time builds a given cache: runs that
-start together on a cold cache (a parallel sweep, DDP ranks) wait on ``<cache>.lock`` while the
-first builds it, then load it (``packed.cache_lock``). Shapes are first written one by one into a
-``.parts`` folder beside it, so an interrupted run resumes without redoing finished shapes; the
-packed file is written atomically at the end and the parts removed.
+every setting that decides what it holds: the classes, the split, ``num_points``, ``max_vertices``,
+``seed``, the preprocessing version and the files (``packed.files_fingerprint``: the root and every
+file's bytes). ``strict`` decides no content: a cache holds what a lenient read gives (the usable
+shapes, and one reason per file left out in ``skipped``), and ``strict`` is checked against it: a
+strict read of a cache that skipped files raises the first reason, the very line a strict read of a
+cold cache raises; a cache that skipped nothing serves strict and lenient runs alike.
+
+One process at a time builds a given cache: runs that start together on a cold cache (a parallel
+sweep, DDP ranks) wait on ``<cache>.lock`` while the first builds it, then load it
+(``packed.cache_lock``; the lock file goes when the build ends, done or failed). Shapes are first
+written one by one into a ``.parts`` folder beside it, so an interrupted run resumes without redoing
+finished shapes; the packed file is written atomically at the end and the parts removed.
 
 ModelNet has no validation split: ``val_fraction`` of each class's official train shapes (chosen
 with ``seed``) form ``val`` and are left out of ``train``; ``test`` is the official test split.
@@ -21,7 +29,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 import warnings
 import zlib
 from pathlib import Path
@@ -29,11 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from .mesh_io import DatasetNotFound, ShapeFileError, check_mesh, normalize_unit_sphere, read_off, zup_to_yup
-from .packed import PACKED_ARRAYS, PackedShapes, cache_lock, files_fingerprint, load_npz, pack, sample_surface, save_npz_atomic, triangle_areas, validate
+from .packed import (PACKED_ARRAYS, PackedShapes, cache_lock, files_fingerprint, load_npz, log_skipped, pack,
+                     sample_surface, save_npz_atomic, skip, triangle_areas, validate, writing)
 
-log = logging.getLogger(__name__)
-
-PREP_VERSION = "1"  # bump when preprocessing changes: old caches then miss
+PREP_VERSION = "2"  # bump when preprocessing or the skip reasons change: old caches then miss
 EXPECTED = {40: {"train": 9843, "test": 2468}, 10: {"train": 3991, "test": 908}}
 LAYOUT = ("<root>/<class>/{train,test}/<class>_NNNN.off for every class (ModelNet40: 40 classes, 9843 train / "
           "2468 test shapes; the Princeton ModelNet40.zip, unpacked)")
@@ -99,7 +105,13 @@ def _part_path(parts: Path, path: Path) -> Path:
 
 def prepare_split(files: list[tuple[Path, int]], cache_path: Path, settings: dict, num_classes: int,
                   strict: bool = False, progress: bool = True, preprocess_fn=None) -> dict[str, np.ndarray]:
-    """Preprocess ``files`` into the packed cache at ``cache_path`` (resumable; see the module doc).
+    """Preprocess ``files`` into the packed cache at ``cache_path`` (resumable; see the module doc)
+    -> its arrays and ``skipped`` (one reason per file left out, in file order).
+
+    ``strict``: the first file that cannot be used raises ShapeFileError with its reason, cached or
+    not (a cache built leniently that skipped files raises its first reason). A cache write that
+    fails (a full disk) raises an OSError naming the file being written; the lock file and the
+    temp file are removed, the finished per-shape parts kept for the next run.
 
     ``preprocess_fn(path, label, num_points, max_vertices, seed) -> {verts, faces, points, label, name}``
     (raising ShapeFileError for an unusable file) lets other readers reuse this caching; default: this
@@ -112,12 +124,13 @@ def prepare_split(files: list[tuple[Path, int]], cache_path: Path, settings: dic
                         lambda a: validate(a, None, settings["num_points"], num_classes))
 
     arrays = cached()
-    if arrays is not None:
-        return arrays
-    with cache_lock(cache_path):  # one process builds, others wait for it (packed.cache_lock)
-        arrays = cached()
-        if arrays is None:
-            arrays = _build_split(files, cache_path, settings, num_classes, strict, progress, preprocess_fn)
+    if arrays is None:
+        with cache_lock(cache_path):  # one process builds, others wait for it (packed.cache_lock)
+            arrays = cached()
+            if arrays is None:
+                arrays = _build_split(files, cache_path, settings, num_classes, strict, progress, preprocess_fn)
+    if strict and len(arrays["skipped"]):
+        raise ShapeFileError(str(arrays["skipped"][0]))  # the line a cold strict read gives
     return arrays
 
 
@@ -128,29 +141,19 @@ def _build_split(files, cache_path: Path, settings: dict, num_classes: int, stri
 
     parts = cache_path.with_suffix(".parts")
     parts.mkdir(parents=True, exist_ok=True)
-    (parts / "settings.json").write_text(json.dumps(settings, sort_keys=True))
+    with writing(parts / "settings.json"):
+        (parts / "settings.json").write_text(json.dumps(settings, sort_keys=True))
     shapes, skipped = [], []
     for path, label in tqdm(files, desc=f"prepare {cache_path.stem}", unit="shape", disable=None if progress else True, leave=False):
         part = _part_path(parts, path)
-        if part.exists():
+        shape = _read_part(part)
+        if shape is None:
             try:
-                with np.load(part, allow_pickle=False) as z:
-                    shapes.append({"verts": z["verts"], "faces": z["faces"], "points": z["points"],
-                                   "label": int(z["label"]), "name": str(z["name"])})
+                shape = preprocess_fn(path, label, settings["num_points"], settings["max_vertices"], settings["seed"])
+            except ShapeFileError as exc:
+                skip(str(exc), skipped, strict)
                 continue
-            except Exception:  # a part cut short by a crash: redo that shape
-                part.unlink()
-        try:
-            shape = preprocess_fn(path, label, settings["num_points"], settings["max_vertices"], settings["seed"])
-        except ShapeFileError as exc:
-            if strict:
-                raise
-            log.warning("skipping %s", exc)
-            skipped.append(str(exc))
-            continue
-        tmp = part.with_suffix(".tmp.npz")
-        np.savez(tmp, **{k: np.asarray(v) for k, v in shape.items()})
-        tmp.replace(part)
+            _write_part(part, shape)
         shapes.append(shape)
     arrays = pack(shapes, settings["num_points"])
     arrays["skipped"] = np.asarray(skipped, dtype=str)
@@ -159,10 +162,34 @@ def _build_split(files, cache_path: Path, settings: dict, num_classes: int, stri
     for p in parts.iterdir():
         p.unlink()
     parts.rmdir()
-    if skipped:
-        warnings.warn(f"{cache_path.stem}: skipped {len(skipped)} of {len(files)} shapes: " + "; ".join(skipped[:5])
-                      + (" ..." if len(skipped) > 5 else ""), stacklevel=2)
+    log_skipped(cache_path.stem, skipped, len(files), "shapes")
     return arrays
+
+
+def _read_part(part: Path):
+    """The shape a finished earlier run left in ``part``, or None (none there, or cut short by a
+    crash: then removed, and the shape is done again)."""
+    if not part.exists():
+        return None
+    try:
+        with np.load(part, allow_pickle=False) as z:
+            return {"verts": z["verts"], "faces": z["faces"], "points": z["points"], "label": int(z["label"]),
+                    "name": str(z["name"])}
+    except Exception:
+        part.unlink()
+        return None
+
+
+def _write_part(part: Path, shape: dict) -> None:
+    """``shape`` into ``part`` via a temp file (removed if the write fails; an OSError names ``part``)."""
+    tmp = part.with_suffix(".tmp.npz")
+    try:
+        with writing(part):
+            np.savez(tmp, **{k: np.asarray(v) for k, v in shape.items()})
+        tmp.replace(part)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def val_mask(labels: np.ndarray, fraction: float, seed: int) -> np.ndarray:

@@ -40,8 +40,9 @@ out of ``train``; ``test`` is the official test split.
 Bad input: a missing root, names file, list file or listed data file raises ``DatasetNotFound`` naming
 the path, the format, the expected layout and where the data comes from. A cloud that cannot be used
 (a non-numeric line, NaN/Inf coordinates, fewer lines than ``num_points``; an unknown id in the list)
-is skipped with a warning and its reason (file and line) kept in ``skipped`` (list ids that name no
-class are reported by ``train`` and ``val`` alike: they belong to neither), or raises
+is skipped with one log line giving its reason (file and line; ``packed.skip``), kept in ``skipped``
+(list ids that name no class are in ``train``'s and ``val``'s alike: they belong to neither; the
+line is logged once), or raises
 ``ShapeFileError`` with ``strict=True``. A malformed h5 file (missing key, wrong shapes, labels outside
 the names file) always raises. Splits or names files of another size than the official release give a
 ``CountWarning`` with both numbers. Everything is read at construction (the official train split of
@@ -49,7 +50,6 @@ normal_resampled is ~8,900 small text reads for ``train``; ``val`` reads only it
 """
 from __future__ import annotations
 
-import logging
 import re
 import warnings
 import zlib
@@ -63,8 +63,7 @@ from torch.utils.data import Dataset
 from .h5io import read_labelled_clouds
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere, zup_to_yup
 from .modelnet import CountWarning, val_mask
-
-log = logging.getLogger(__name__)
+from .packed import log_skipped, skip
 
 FORMATS = ("normal_resampled", "ply_hdf5_2048")
 SPLITS = ("train", "val", "test")
@@ -213,10 +212,7 @@ class ModelNetPoints(Dataset):
         self.skipped: list[str] = []
         read = self._read_txt if format == "normal_resampled" else self._read_h5
         clouds, labels, names = read(official, float(val_fraction))
-        if self.skipped:
-            warnings.warn(f"ModelNet40 {format} {split}: skipped {len(self.skipped)} of "
-                          f"{len(self.skipped) + len(names)} clouds: " + "; ".join(self.skipped[:5])
-                          + (" ..." if len(self.skipped) > 5 else ""), stacklevel=2)
+        log_skipped(f"ModelNet40 {format} {split}", self.skipped, len(self.skipped) + len(names), "clouds")
         self._points = np.zeros((len(clouds), self.num_points, 3), np.float32)
         for i, pts in enumerate(clouds):
             self._points[i] = normalize_unit_sphere(zup_to_yup(pts) if self.zup else pts)
@@ -225,10 +221,7 @@ class ModelNetPoints(Dataset):
 
     # ------------------------------------------------------------------ reading
     def _bad(self, reason: str) -> None:
-        if self.strict:
-            raise ShapeFileError(reason)
-        log.warning("skipping %s", reason)
-        self.skipped.append(reason)
+        skip(reason, self.skipped, self.strict)
 
     def _count(self, official: str, n: int) -> None:
         expected = EXPECTED[self.format][official]

@@ -4,15 +4,24 @@ Layout (``PACKED_ARRAYS``): ``verts [sum V, 3] float32``, ``faces [sum F, 3] int
 to each shape), ``verts_per_shape [N]``, ``faces_per_shape [N]``, ``points [N, P, 3] float32``,
 ``labels [N]``, ``names [N] str``, plus a JSON ``settings`` string: a cache written with other
 settings (or by another version) is never misread, it is rebuilt.
+
+Key contract: the settings (and the cache's file name, a hash of them) hold everything that decides
+what a cache holds: the reader's options, its preprocessing version and ``files_fingerprint`` (the
+root and every file's bytes). An option that decides only whether a cache may be used is checked
+against what it holds instead (``strict``: a reader compares it with its ``skipped`` record).
+A file that cannot be used is reported once, in one log line (``skip``). A write that fails (a full
+disk) raises an OSError naming the file being written, and leaves no temp file and no lock file.
 """
 from __future__ import annotations
 
 import hashlib
 import json
-from contextlib import contextmanager
+import logging
 import os
 import tempfile
 import warnings
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -20,19 +29,78 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from .mesh_io import ShapeFileError
+
+log = logging.getLogger("mvtn_exp.data")
+
 PACKED_ARRAYS = ("verts", "faces", "verts_per_shape", "faces_per_shape", "points", "labels", "names")
+FINGERPRINT_VERSION = "2"  # what files_fingerprint hashes; another value names other caches
+
+
+def file_digest(path) -> str:
+    """SHA-1 (hex) of the bytes of the file at ``path``."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_BINARY", 0))
+    try:
+        h = hashlib.sha1()
+        while block := os.read(fd, 1 << 20):
+            h.update(block)
+        return h.hexdigest()
+    finally:
+        os.close(fd)
+
+
+def _digests(paths: list) -> list[str]:
+    """``file_digest`` of each path, in order; batches of files on a few threads (reads and SHA-1
+    release the GIL; one file per task would cost more in dispatch than small files take to hash)."""
+    batches = [paths[i:i + 64] for i in range(0, len(paths), 64)]
+    with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
+        return [d for batch in pool.map(lambda b: [file_digest(p) for p in b], batches) for d in batch]
 
 
 def files_fingerprint(paths, root) -> str:
     """What a cache built from ``paths`` (files under ``root``) was built from: a SHA-1 of the
-    resolved root and, per file, its path under the root, size and modification time (ns). A cache
-    keyed by it is rebuilt for another root (same file names, other contents) or a changed file."""
-    root = Path(root)
-    h = hashlib.sha1(str(root.resolve()).encode())
-    for p in paths:
-        st = Path(p).stat()
-        h.update(f"\n{Path(p).relative_to(root).as_posix()}\t{st.st_size}\t{st.st_mtime_ns}".encode())
+    resolved root and, per file, its path under the root and a SHA-1 of its bytes. A cache keyed by
+    it is rebuilt for another root (same file names, other contents) or a file whose bytes changed,
+    even one edited in place with its size and modification time put back; a file only touched
+    (same bytes, new time) keeps its cache.
+
+    Cost: every file is read and hashed on every call (a warm start too: only the bytes can tell an
+    in-place edit). Batches of files on a few threads overlap the reads; SHA-1 runs at about
+    1.8 GB/s per core with the CPU's SHA instructions. Measured on 2 cores, files in the page
+    cache: 3,000 files of 170 KB (510 MB; ModelNet40's mean file size) 0.21 s, 5,000 files of 4 KB
+    0.09 s, 12,311 files of 170 KB (2.1 GB, ModelNet40's size) 0.8-0.9 s, against 0.05 s for the
+    3,000 files' sizes and times alone; from a cold disk the disk's read speed bounds it."""
+    root, paths = Path(root), list(paths)
+    h = hashlib.sha1(f"{FINGERPRINT_VERSION}\n{root.resolve()}".encode())
+    for p, digest in zip(paths, _digests(paths)):
+        h.update(f"\n{Path(p).relative_to(root).as_posix()}\t{digest}".encode())
     return h.hexdigest()
+
+
+_REPORTED: set[str] = set()  # the skip lines this process logged: each is said once per process
+
+
+def _report(line: str) -> None:
+    if line not in _REPORTED:  # (train and val read from one official file report its bad rows once)
+        _REPORTED.add(line)
+        log.warning("%s", line)
+
+
+def skip(reason: str, skipped: list, strict: bool) -> None:
+    """A file (or row) that cannot be used: with ``strict`` raise ``ShapeFileError(reason)``; else its
+    one log line, ``skipping <reason>`` (once per process), and ``reason`` appended to ``skipped``.
+    That line is the only report naming the file (no warning repeats it, nor its source line)."""
+    if strict:
+        raise ShapeFileError(reason)
+    _report(f"skipping {reason}")
+    skipped.append(reason)
+
+
+def log_skipped(who: str, skipped, total: int, unit: str) -> None:
+    """After the ``skip`` lines: one line ``<who>: skipped N of M <unit>`` (nothing when none was);
+    it counts, it names no file again."""
+    if len(skipped):
+        _report(f"{who}: skipped {len(skipped)} of {total} {unit}")
 
 
 class CacheWarning(UserWarning):
@@ -88,12 +156,25 @@ def validate(a: dict[str, np.ndarray], n: Optional[int], num_points: int, num_cl
         raise ValueError("inconsistent arrays")
 
 
+@contextmanager
+def writing(path: Path):
+    """An OSError raised inside that names no file (a full disk: ENOSPC from a write) is raised
+    again naming ``path``, the file being written: its one line then says which and why."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is None:
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+        raise
+
+
 def save_npz_atomic(path: Path, arrays: dict[str, np.ndarray], settings: dict) -> None:
-    """Write ``arrays`` + ``settings`` to ``path`` via a temp file and ``os.replace`` (never half a file)."""
+    """Write ``arrays`` + ``settings`` to ``path`` via a temp file and ``os.replace`` (never half a
+    file). On failure the temp file is removed; an OSError (a full disk) names ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as fh:
+        with writing(path), os.fdopen(fd, "wb") as fh:
             np.savez_compressed(fh, **arrays, settings=np.asarray(json.dumps(settings, sort_keys=True)))
         umask = os.umask(0)
         os.umask(umask)
@@ -160,8 +241,11 @@ class PackedShapes(Dataset):
 def cache_lock(path: Path):
     """Hold an exclusive lock on ``<path>.lock`` while the cache at ``path`` is looked up and built:
     processes that start together on a cold cache (a parallel sweep, several ranks) build it once;
-    the others wait, then load it. POSIX ``flock`` (released by the OS if the holder dies); where
-    it is missing (Windows) there is no lock and the atomic writes alone keep the cache whole."""
+    the others wait, then load it. The lock file is removed when the holder is done, built or failed
+    (a full disk, a strict run's bad file, an interrupt): none is left behind. A waiter whose lock
+    file was removed meanwhile locks the new one (``_locked``). POSIX ``flock`` (released by the OS
+    if the holder dies); where it is missing (Windows) there is no lock and the atomic writes alone
+    keep the cache whole."""
     try:
         import fcntl
     except ImportError:
@@ -169,15 +253,29 @@ def cache_lock(path: Path):
         return
     lock = path.with_name(path.name + ".lock")
     lock.parent.mkdir(parents=True, exist_ok=True)
-    with open(lock, "a") as f:
+    f = _locked(lock, fcntl)
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)  # (still held: whoever locks next checks it is the file at the path)
+        fcntl.flock(f, fcntl.LOCK_UN)
+        f.close()
+
+
+def _locked(lock: Path, fcntl):
+    """``lock`` opened and flock-ed, and still the file at that path once the lock is held (a holder
+    that finished removed the one this process waited on: then lock the current one)."""
+    while True:
+        f = open(lock, "a")
         fcntl.flock(f, fcntl.LOCK_EX)
         try:
-            yield
-            # the cache is written: drop the lock file (a process still waiting on it finds the
-            # cache when it gets the lock; one arriving later finds the cache before locking)
-            lock.unlink(missing_ok=True)
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+            a, b = os.stat(lock), os.fstat(f.fileno())
+            if (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino):
+                return f
+        except FileNotFoundError:
+            pass
+        fcntl.flock(f, fcntl.LOCK_UN)
+        f.close()
 
 
 def cached_arrays(path: Path, settings: dict, keys, check, build) -> dict[str, np.ndarray]:

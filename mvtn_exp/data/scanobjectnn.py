@@ -23,8 +23,9 @@ the cloud's row in the file), the same on every epoch and every run.
 
 ScanObjectNN has no validation split: ``val_fraction`` of each class's official training clouds
 (``modelnet.val_mask``, chosen with ``seed``) form ``val`` and are left out of ``train``; ``test`` is
-the official test file. A cloud with NaN/Inf points is skipped with a warning naming the file and the
-row (counted in ``skipped``), or raises with ``strict=True``.
+the official test file. A cloud with NaN/Inf points is skipped with one log line naming the file and
+the row (counted in ``skipped``; ``packed.skip``), or, with ``strict=True``, raises ShapeFileError
+with that reason.
 """
 from __future__ import annotations
 
@@ -38,6 +39,7 @@ from torch.utils.data import Dataset
 from .h5io import read_labelled_clouds
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere
 from .modelnet import CountWarning, val_mask
+from .packed import log_skipped, skip
 
 CLASSES = ["bag", "bin", "box", "cabinet", "chair", "desk", "display", "door", "shelf", "table", "bed", "pillow",
            "sink", "sofa", "toilet"]
@@ -116,13 +118,11 @@ class ScanObjectNN(Dataset):
             warnings.warn(f"ScanObjectNN {variant} {path}: {len(data)} {official} clouds, the official dataset has "
                           f"{expected}", CountWarning, stacklevel=2)
         finite = np.isfinite(data).all(axis=(1, 2))
-        self.skipped = [f"{path}: key 'data' row {i}: {int((~np.isfinite(data[i])).any(1).sum())} points are NaN "
-                        f"or Inf" for i in np.flatnonzero(~finite)]
-        if self.skipped:
-            if strict:
-                raise ShapeFileError(self.skipped[0])
-            warnings.warn(f"ScanObjectNN {variant}: skipped {len(self.skipped)} of {len(data)} clouds: "
-                          + "; ".join(self.skipped[:5]) + (" ..." if len(self.skipped) > 5 else ""), stacklevel=2)
+        self.skipped: list[str] = []
+        for i in np.flatnonzero(~finite):
+            skip(f"{path}: key 'data' row {i}: {int((~np.isfinite(data[i])).any(1).sum())} points are NaN or Inf",
+                 self.skipped, strict)
+        log_skipped(f"ScanObjectNN {variant} {official}", self.skipped, len(data), "clouds")
         rows = np.flatnonzero(finite)
         if official == "train":
             is_val = val_mask(labels[rows], val_fraction, seed)

@@ -23,7 +23,6 @@ of each class's training objects form ``val`` (``modelnet.val_mask``).
 """
 from __future__ import annotations
 
-import warnings
 import zlib
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from torch.utils.data import Dataset
 
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere
 from .modelnet import val_mask
+from .packed import log_skipped, skip
 from .scanobjectnn import CLASSES, SPLITS
 
 FOLDER = "object_dataset"
@@ -130,13 +130,12 @@ class ScanObjectNNObjects(Dataset):
                                   f"e.g. {missing[0]}")
         official = [e for e in entries if e[2] == (split == "test")]
         bad = {e[0]: why for e in official if (why := check_size(files[e[0]])) is not None}
-        self.skipped = list(bad.values())
-        if self.skipped:
-            if strict:
-                raise ShapeFileError(self.skipped[0])
-            warnings.warn(f"ScanObjectNN {variant} {split}: skipped {len(bad)} of {len(official)} object files: "
-                          + "; ".join(self.skipped[:3]) + (" ..." if len(bad) > 3 else ""), stacklevel=2)
-            official = [e for e in official if e[0] not in bad]
+        self.skipped: list[str] = []
+        for why in bad.values():
+            skip(why, self.skipped, strict)
+        log_skipped(f"ScanObjectNN {variant} {'test' if split == 'test' else 'train'}", self.skipped, len(official),
+                    "object files")
+        official = [e for e in official if e[0] not in bad]
         labels = np.array([e[1] for e in official], dtype=np.int64)
         keep = np.ones(len(official), bool)
         if split != "test":

@@ -18,8 +18,10 @@ the paper, ShapeNet is rendered as point clouds: items carry only ``points`` unl
 ``as_points=False``. Caching (resumable, versioned, atomic) is ``modelnet.prepare_split``'s.
 
 A CSV row whose OBJ is missing is skipped with the path in the reason and counted (``strict``:
-raises ShapeFileError); so are unreadable or degenerate meshes. When shapes were skipped a
-CountWarning gives the number loaded and the number of rows the CSV lists for the split.
+raises ShapeFileError); so are unreadable or degenerate meshes. Each skipped row is reported once,
+in one log line (``packed.skip``); when shapes were skipped a CountWarning gives the number loaded
+and the number of rows the CSV lists for the split. The cache's key is ``modelnet.prepare_split``'s
+(every setting, and the files' bytes); ``strict`` is checked against what it holds, as there.
 """
 from __future__ import annotations
 
@@ -34,9 +36,9 @@ from typing import NamedTuple
 import numpy as np
 
 from . import modelnet
-from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere, read_mesh
+from .mesh_io import DatasetNotFound, normalize_unit_sphere, read_mesh
 from .modelnet import CountWarning
-from .packed import PackedShapes, sample_surface, triangle_areas
+from .packed import PackedShapes, sample_surface, skip, triangle_areas
 
 PREP_VERSION = "1"  # bump when preprocessing changes: old caches then miss
 HEADER = ("id", "synsetId", "subSynsetId", "modelId", "split")
@@ -175,10 +177,7 @@ class ShapeNetCore(PackedShapes):
         for r in mine:
             path = root / r.synset / r.model_id / MESH_PATH
             if not path.is_file():
-                reason = f"{path}: no such file (row {r.id}, {csv_path}:{r.line})"
-                if strict:
-                    raise ShapeFileError(reason)
-                skipped.append(reason)
+                skip(f"{path}: no such file (row {r.id}, {csv_path}:{r.line})", skipped, strict)
                 continue
             files.append((path, label_of[r.synset]))
             by_path[path] = r.id
@@ -187,7 +186,7 @@ class ShapeNetCore(PackedShapes):
                     "seed": int(seed),  # the rows present on disk: a file that appears later rebuilds the cache
                     "rows": hashlib.sha1("\n".join(f"{by_path[p]},{p.relative_to(root).as_posix()},{lab}"
                                                    for p, lab in files).encode()).hexdigest(),
-                    "files": modelnet.files_fingerprint([p for p, _ in files], root)}  # root, sizes, times
+                    "files": modelnet.files_fingerprint([p for p, _ in files], root)}  # the root, every file's bytes
         key = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
         self.cache_path = Path(cache_dir) / f"shapenet{len(classes)}_{split}_{key}.npz"
 
@@ -205,8 +204,8 @@ class ShapeNetCore(PackedShapes):
         self.model_ids = [row_of[n].model_id for n in self.names]
         if len(self) != self.expected:
             warnings.warn(f"ShapeNet {split}: {len(self)} shapes loaded, the split CSV {csv_path} lists "
-                          f"{self.expected} ({len(self.skipped)} skipped: " + "; ".join(self.skipped[:3])
-                          + (" ..." if len(self.skipped) > 3 else "") + ")", CountWarning, stacklevel=2)
+                          f"{self.expected} ({len(self.skipped)} skipped, each named in its own log line)",
+                          CountWarning, stacklevel=2)
 
     def item(self, i: int) -> dict:
         item = super().item(i)

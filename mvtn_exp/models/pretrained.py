@@ -15,7 +15,9 @@ Facebook's DeiT ViTs). ``resolve(backbone, weights)`` turns a source name into a
 
 Any other ``weights`` value is a local file path and is returned as it is (``backbones.load_weights``
 reads it and maps DataParallel / DINO key prefixes). What a source means never changes: a new
-release of weights gets a new source name.
+release of weights gets a new source name. ``check_file(backbone, path)`` checks such a file
+before a run starts (``mvtn-train``'s early checks): it loads into the backbone as training will
+load it, else one ``WeightsFileError`` line says what is wrong with it.
 
 Errors are one line (``PretrainedError``, a ValueError): an unknown pairing names the available
 ones; a failed download names the URL, the reason and how to pass a downloaded file.
@@ -25,7 +27,10 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import pickle
+import re
 import sys
+import warnings
 import urllib.error
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +42,13 @@ MIRROR_ENV = "MVTN_WEIGHTS_MIRROR"
 
 class PretrainedError(ValueError):
     """Published weights that cannot be had (unknown pairing, no network, a file of another hash)."""
+
+
+class WeightsFileError(ValueError):
+    """A local ``backbone.weights`` file that does not load into the backbone (``check_file``)."""
+
+
+HEAD_ROWS = 1000  # the classifier's rows in the backbone a file is checked against (any count loads)
 
 
 @dataclass(frozen=True)
@@ -136,3 +148,67 @@ def _check(path: Path, pub: Published, source: str) -> None:
 def _one_line(exc: BaseException) -> str:
     reason = getattr(exc, "reason", None) or exc
     return " ".join(str(reason).split()) or type(exc).__name__
+
+
+def check_file(backbone: str, path: str) -> None:
+    """Raise ``WeightsFileError``, one line ``backbone.weights=PATH: what is wrong (expected ...)``,
+    unless the local file ``path`` loads into ``backbone`` as training loads it: a file that
+    ``torch.load(weights_only=True)`` reads (nothing of the file's choosing runs), holding a
+    state_dict of tensors whose keys and shapes fit the backbone (``backbones.load_weights`` into one
+    built on the meta device: no memory for its weights). A file is checked once per process."""
+    p = Path(path)
+    if p.is_dir():
+        found = [name for name in ("best.pt", "last.pt") if (p / name).is_file()]
+        hint = f"; pass {p / found[0]}" if found else ""
+        raise WeightsFileError(_refusal(backbone, path, f"a folder, not a file{hint}"))
+    if not p.is_file():
+        raise WeightsFileError(_refusal(backbone, path, "no such file"))
+    st = p.stat()
+    reason = _problem(backbone, str(p.resolve()), st.st_size, st.st_mtime_ns)
+    if reason is not None:
+        raise WeightsFileError(_refusal(backbone, path, reason))
+
+
+def _refusal(backbone: str, path: str, reason: str) -> str:
+    return (f"backbone.weights={path}: {reason} (expected a state_dict for backbone={backbone} saved with "
+            f"torch.save: a torchvision/timm-style .pth or a run's best.pt / last.pt; or one of {list(SOURCES)})")
+
+
+@functools.lru_cache(maxsize=None)
+def _problem(backbone: str, path: str, size: int, mtime_ns: int) -> str | None:
+    """What keeps the file at ``path`` (of this size and time) from loading into ``backbone``; None: it loads."""
+    from ..runtime.checkpoint import describe_non_checkpoint
+    from .backbones import build_backbone, load_weights
+
+    what = describe_non_checkpoint(Path(path))
+    if what is not None:
+        return f"{what}, not a file torch.save writes"
+    with torch.device("meta"):
+        model = build_backbone(backbone, num_classes=HEAD_ROWS)
+    try:
+        with warnings.catch_warnings():  # (copying into meta tensors is a no-op, and torch says so per tensor)
+            warnings.simplefilter("ignore")
+            load_weights(model, path)
+    except ValueError as exc:
+        return _load_problem(exc, path, backbone)
+    return None
+
+
+def _load_problem(exc: ValueError, path: str, backbone: str) -> str:
+    """``load_weights``' refusal in this module's words: torch's reason in one sentence, without its
+    advice to load the file unsafely."""
+    cause = exc.__cause__
+    if cause is None:  # the file was read: not a state_dict, or one of another network
+        text = str(exc)
+        if text.startswith(f"cannot load '{path}' into "):  # (the classifier's rows are the dataset's classes)
+            text = re.sub(rf"vs model \[{HEAD_ROWS}\b", "vs model [classes", text.split(": ", 1)[1])
+            return f"its tensors do not fit backbone={backbone}: {text}"
+        return text.replace(f"'{path}' does not hold a", "holds no", 1)
+    text = str(cause)
+    found = re.search(r"GLOBAL ([\w.]+)", text)
+    if isinstance(cause, pickle.UnpicklingError) and found:
+        return (f"holds objects other than tensors and plain data (GLOBAL {found.group(1)}), refused unread; "
+                "save model.state_dict() rather than the model")
+    text = text.split("WeightsUnpickler error:", 1)[-1]  # (torch's reason, after its advice)
+    first = next((line.strip() for line in text.splitlines() if line.strip()), type(cause).__name__)
+    return f"cannot be read ({type(cause).__name__}: {first.split('. ')[0]})"

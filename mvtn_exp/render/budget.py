@@ -148,3 +148,13 @@ def tile_too_large(plan_or_budget: float | None, kind: str, candidates: int) -> 
     return (f"renderer.memory_budget_mb={plan_or_budget:g}: one screen tile holds {candidates} candidate pairs, "
             f"which need {need} MiB at least; set renderer.memory_budget_mb >= {need}, lower "
             "renderer.tile_size, or null (automatic)")
+
+
+def render_bytes(kind: str, views: int, image_size: int, prims: int = 0, max_candidates: int = 0) -> int:
+    """Peak bytes of rendering one shape's ``views`` views at ``image_size`` px at once, with
+    ``prims`` faces or points and no budget: the per-pixel state of the search and the images
+    (``PIXEL_BYTES``), the primitive-views (``PRIM_BYTES``) and one chunk of ``max_candidates``
+    candidates (``CANDIDATE_BYTES``). Without autograd an upper bound (the constants are
+    forward+backward peaks)."""
+    return (views * image_size * image_size * PIXEL_BYTES[kind] + prims * views * PRIM_BYTES[kind]
+            + max_candidates * CANDIDATE_BYTES[kind])

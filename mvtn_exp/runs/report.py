@@ -29,7 +29,7 @@ from scipy import stats
 from .paired_stats import mean_sd
 from .sides import CompareError, _matches
 from ..runtime.dotted import lookup
-from .folders import Run
+from .folders import Run, find_runs
 
 ANY = "<set>"  # a ``where`` value: the key holds any value but null
 PAPER_RUNS = 4  # the paper's headline cells are the best of four runs; the supplement gives their mean +- std
@@ -44,7 +44,28 @@ SETUP_KEYS = {"setup", "setup_cite"}
 
 
 class ReportError(ValueError):
-    """A tables file that does not say what a row needs, or a folder that cannot be read."""
+    """A tables file that does not say what a row needs, or a folder that cannot be read or holds no run."""
+
+
+# what ``read_folders`` counts as a run (``runs/folders.py``)
+NO_RUNS = ("no runs in it (a run is a folder holding metrics.json, status.json or .hydra/, as mvtn-train and "
+           "mvtn-eval write them; give the folder of such runs or one above them)")
+
+
+def read_folders(folders) -> list[Run]:
+    """Every run at or below ``folders`` (``find_runs``: in the order given, a run reached twice read
+    once); a folder that holds no run is a ``ReportError`` naming it (one that is not there: a
+    ``FolderError``), raised before anything is written."""
+    runs, seen = [], set()
+    for folder in folders:
+        found = find_runs([folder])
+        if not found:
+            raise ReportError(f"{folder}: {NO_RUNS}")
+        for run in found:
+            if run.path.resolve() not in seen:
+                seen.add(run.path.resolve())
+                runs.append(run)
+    return runs
 
 
 @dataclass
@@ -303,5 +324,5 @@ def write(result: dict, out_dir) -> tuple[Path, Path]:
     return md, js
 
 
-__all__ = ["ANY", "PAPER_RUNS", "SPREAD", "CompareError", "ReportError", "counts_for", "load_tables", "metric_value", "report", "row_matches",
-           "paper_markdown", "to_markdown", "welch", "write"]
+__all__ = ["ANY", "NO_RUNS", "PAPER_RUNS", "SPREAD", "CompareError", "ReportError", "counts_for", "load_tables", "metric_value",
+           "read_folders", "report", "row_matches", "paper_markdown", "to_markdown", "welch", "write"]

@@ -10,6 +10,7 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 
 from ..config.compose import override_key
+from ..engine import stopping
 from .folders import STATUS_FILE, Run, sweep_jobs  # noqa: F401 (STATUS_FILE re-exported)
 from .settings import is_local
 
@@ -134,11 +135,16 @@ class SweepSummary(Callback):
     """Hydra callback: write the sweep summary when a multirun ends; exit 1 naming the failed jobs
     (after the summary is written) when any job failed."""
 
+    def on_multirun_start(self, config, **kwargs) -> None:
+        stopping.sweep_started(config.hydra.sweep.dir)  # where a Ctrl-C finds the jobs to stop
+
     def on_multirun_end(self, config, **kwargs) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
         if not sweep_dir.is_dir():
             return
         _, md = write_summary(sweep_dir)
+        if stopping.sweep_stopping():  # interrupted: mvtn-train says so in one line
+            return
         print(md.read_text())
         print(md)
         rows = collect(sweep_dir)
