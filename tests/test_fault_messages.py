@@ -196,7 +196,22 @@ BAD_FILES = {
 }
 
 
-@pytest.mark.parametrize("kind", list(BAD_FILES))
+EXPECTED = ("(expected a state_dict for backbone=small_cnn saved with torch.save: a torchvision/"
+            "timm-style .pth or a run's best.pt / last.pt; or one of ['imagenet'])")
+
+
+def test_each_bad_weights_file_is_named_for_what_it_is(tmp_path):
+    for i, (kind, what) in enumerate(BAD_FILES.items()):
+        weights = tmp_path / f"{i}.pth"
+        _bad_file(kind, weights)
+        with pytest.raises(pretrained.WeightsFileError) as exc:
+            pretrained.check_file("small_cnn", str(weights))
+        text = str(exc.value)
+        assert "\n" not in text and "weights_only" not in text, (kind, text)
+        assert text.startswith(f"backbone.weights={weights}: {what}") and text.endswith(EXPECTED), (kind, text)
+
+
+@pytest.mark.parametrize("kind", ["truncated", "wrong shapes"])
 def test_a_bad_weights_file_is_one_line_before_any_run_folder(tmp_path, kind):
     weights = tmp_path / "weights.pth"
     _bad_file(kind, weights)
@@ -209,8 +224,7 @@ def test_a_bad_weights_file_is_one_line_before_any_run_folder(tmp_path, kind):
     err = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(err) == 1, r.stderr[-3000:]
     assert err[0].startswith(f"mvtn-train: error: backbone.weights={weights}: {BAD_FILES[kind]}"), err[0]
-    assert err[0].endswith("(expected a state_dict for backbone=small_cnn saved with torch.save: a torchvision/"
-                           "timm-style .pth or a run's best.pt / last.pt; or one of ['imagenet'])"), err[0]
+    assert err[0].endswith(EXPECTED), err[0]
     assert "weights_only" not in r.stderr and "Traceback" not in r.stderr and r.stdout == ""
     assert not run.exists() and list(work.iterdir()) == []  # no run dir, .hydra, train.log or lock file
 
