@@ -119,9 +119,9 @@ def test_only_zero_area_faces_render_empty_without_nan():
     assert torch.isfinite(out.images).all()
 
 
-@pytest.mark.parametrize("size", [1, 1024])
-@pytest.mark.parametrize("name", ["mesh_hard", "mesh_soft", "points_alpha"])
-def test_tiny_and_huge_images(size, name):
+@pytest.mark.parametrize("size,name", [pytest.param(s, n, marks=pytest.mark.slow) if (s, n) == (1024, "mesh_soft") else (s, n)
+                                       for n in ("mesh_hard", "mesh_soft", "points_alpha") for s in (1, 1024)])
+def test_tiny_and_huge_images(size, name):  # (1024 px soft: ~9 s on 2 cores, make test-all)
     r = MultiViewRenderer(image_size=size, **SETTINGS[name])
     out, _ = _render_and_grad(r, _shape(name), [30.0], [20.0], 2.2)
     assert out.images.shape == (1, 1, 3, size, size)
