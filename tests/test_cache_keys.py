@@ -211,6 +211,33 @@ def test_a_file_edited_in_place_with_size_and_mtime_kept_rebuilds(tree, tmp_path
     assert height(after) == pytest.approx(3.5 * height(before), rel=1e-4)  # the new content (file Z is our Y)
 
 
+def test_the_digest_memo_reads_only_changed_files(tree, tmp_path, monkeypatch):
+    monkeypatch.setattr(packed, "RACY_NS", 0)  # (the tree is seconds old: trust its change times at once)
+    files = sorted(tree.rglob("*.off"))
+    read = []
+    real = packed.file_digest
+    monkeypatch.setattr(packed, "file_digest", lambda p: read.append(Path(p).name) or real(p))
+    first = packed.files_fingerprint(files, tree, tmp_path / "cache")
+    assert len(read) == len(files)
+    read.clear()
+    assert packed.files_fingerprint(files, tree, tmp_path / "cache") == first and read == []  # a warm start
+    one = tree / "chair" / "test" / "chair_0001.off"
+    _edit_in_place(one, "2.000000", "7.000000")  # size and modification time put back: the change time moved
+    edited = packed.files_fingerprint(files, tree, tmp_path / "cache")
+    assert read == [one.name] and edited != first
+    assert edited == packed.files_fingerprint(files, tree)  # the same key as reading every file
+
+
+def test_a_file_changed_within_the_clock_tick_is_read_again(tree, tmp_path, monkeypatch):
+    files = sorted(tree.rglob("*.off"))  # just written: each is racy
+    packed.files_fingerprint(files, tree, tmp_path / "cache")
+    read = []
+    real = packed.file_digest
+    monkeypatch.setattr(packed, "file_digest", lambda p: read.append(Path(p).name) or real(p))
+    packed.files_fingerprint(files, tree, tmp_path / "cache")
+    assert len(read) == len(files)
+
+
 def test_a_touched_file_keeps_its_cache(tree, tmp_path, monkeypatch):
     before = _load(tree, tmp_path / "cache", "test")
     one = tree / "chair" / "test" / "chair_0001.off"

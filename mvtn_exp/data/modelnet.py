@@ -233,7 +233,7 @@ class ModelNetMeshes(PackedShapes):
         official = "test" if split == "test" else "train"
         settings = {"version": PREP_VERSION, "classes": classes, "split": official, "num_points": int(num_points),
                     "max_vertices": int(max_vertices), "seed": int(seed),
-                    "files": files_fingerprint([p for p, _ in files[official]], root)}
+                    "files": files_fingerprint([p for p, _ in files[official]], root, cache_dir)}
         key = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
         name = f"modelnet{len(classes)}"
         self.cache_path = Path(cache_dir) / f"{name}_{official}_{key}.npz"

@@ -186,7 +186,7 @@ class ShapeNetCore(PackedShapes):
                     "seed": int(seed),  # the rows present on disk: a file that appears later rebuilds the cache
                     "rows": hashlib.sha1("\n".join(f"{by_path[p]},{p.relative_to(root).as_posix()},{lab}"
                                                    for p, lab in files).encode()).hexdigest(),
-                    "files": modelnet.files_fingerprint([p for p, _ in files], root)}  # the root, every file's bytes
+                    "files": modelnet.files_fingerprint([p for p, _ in files], root, cache_dir)}  # the root, every file's bytes
         key = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
         self.cache_path = Path(cache_dir) / f"shapenet{len(classes)}_{split}_{key}.npz"
 
