@@ -192,3 +192,23 @@ def test_a_process_forked_from_the_holder_does_not_keep_the_lock(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.stdout.strip() == "forked", r.stderr
     assert rd.holder(tmp_path / rd.LOCK_FILE) is None
+
+
+def test_the_advice_for_a_busy_folder_matches_the_command(tmp_path, capsys):
+    from mvtn_exp.cli.train import claim_run_dir
+
+    holder = subprocess.Popen([sys.executable, "-c", f"from mvtn_exp.engine import run_dir; run_dir.lock({str(tmp_path)!r}); "
+                               "print('locked', flush=True); import time; time.sleep(60)"],
+                              cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        for argv, advice in (([f"hydra.run.dir={tmp_path}"], "give this run another hydra.run.dir"),
+                             ([f"ckpt_path={tmp_path / 'last.pt'}", f"hydra.run.dir={tmp_path}"],
+                              f"once it has ended, resume with: mvtn-train ckpt_path={tmp_path / 'last.pt'}")):
+            with pytest.raises(SystemExit) as exc:
+                claim_run_dir(argv)
+            err = capsys.readouterr().err.strip().splitlines()
+            assert exc.value.code == 2 and len(err) == 1 and err[0].endswith(advice), err
+    finally:
+        holder.kill()
+        holder.wait()

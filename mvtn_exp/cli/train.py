@@ -288,12 +288,17 @@ def claim_run_dir(argv: list[str]) -> None:
         return
     try:
         restarted = int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")) > 0  # torchrun --max-restarts: its own run
-        if keys.get("ckpt_path", "null") in ("null", "") and not restarted:
+        ckpt = keys.get("ckpt_path", "null")
+        if ckpt in ("null", "") and not restarted:
             run_dir_state.check_new_run(folder, keys.get("overwrite", "false").lower() in TRUE)
-        run_dir_state.lock(folder)
+        advice = ("give this run another hydra.run.dir" if ckpt in ("null", "")
+                  else f"once it has ended, resume with: mvtn-train ckpt_path={ckpt}")
+        note = run_dir_state.lock(folder, advice)
     except (run_dir_state.RunDirBusy, run_dir_state.RunDirTaken) as exc:
         print(f"mvtn-train: error: {exc}", file=sys.stderr)
         sys.exit(2)
+    if note:
+        print(f"mvtn-train: {note}", file=sys.stderr)
 
 
 def resume_sweep(argv: list[str]) -> list[str]:
