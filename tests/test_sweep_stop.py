@@ -28,14 +28,19 @@ def _tiny(cache, epochs: int) -> list[str]:
 
 
 def _children(pid: int) -> set[int]:
-    out = set()
+    """Every process below ``pid`` now (workers, their data loader workers)."""
+    parent = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
+            parent[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
             continue
-        if int(fields[1]) == pid:
-            out.add(int(stat.parent.name))
+    out, todo = set(), [pid]
+    while todo:
+        here = todo.pop()
+        below = {c for c, p in parent.items() if p == here} - out
+        out |= below
+        todo += below
     return out
 
 
@@ -46,10 +51,10 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def _interrupt(sweep: Path, cache, how: str, epochs: int = 8, launcher=JOBLIB, seeds: str = "0,1"):
+def _interrupt(sweep: Path, cache, how: str, epochs: int = 8, launcher=JOBLIB, seeds: str = "0,1", extra=()):
     """Start the sweep, send ``how`` once every job has finished an epoch; returns (exit code,
     stderr, the sweep's child processes seen while it ran)."""
-    p = subprocess.Popen([sys.executable, "-m", "mvtn_exp.cli.train", "-m", *launcher, *_tiny(cache, epochs),
+    p = subprocess.Popen([sys.executable, "-m", "mvtn_exp.cli.train", "-m", *launcher, *_tiny(cache, epochs), *extra,
                           f"seed={seeds}", f"hydra.sweep.dir={sweep}"], cwd=ROOT, stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, text=True, start_new_session=True)
     jobs = len(seeds.split(","))
@@ -91,8 +96,9 @@ def _check_stopped(sweep: Path, code: int, err: str, signum: int, children: set[
 
 
 def test_ctrl_c_on_a_joblib_sweep_stops_every_job_with_one_line_and_no_orphans(tmp_path):
+    """Each job also has two data loader workers (forked: they leave the signal to their job)."""
     sweep = tmp_path / "sweep"
-    code, err, children = _interrupt(sweep, tmp_path / "cache", "group-int")
+    code, err, children = _interrupt(sweep, tmp_path / "cache", "group-int", extra=["dataset.num_workers=2"])
     _check_stopped(sweep, code, err, signal.SIGINT, children)
 
 

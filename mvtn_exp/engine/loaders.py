@@ -111,7 +111,18 @@ def _keep(dataset, key: tuple, loader: DataLoader) -> DataLoader:
 
 def _common(cfg: TrainConfig) -> dict:
     n = workers(cfg)
-    return dict(collate_fn=collate_shapes, num_workers=n, persistent_workers=n > 0, pin_memory=_pin(cfg))
+    return dict(collate_fn=collate_shapes, num_workers=n, persistent_workers=n > 0, pin_memory=_pin(cfg),
+                multiprocessing_context=_context() if n > 0 else None)
+
+
+def _context():
+    """The start method the workers would get in a plain process (the standard library's, ``fork``
+    on Linux), also inside a joblib sweep's worker, whose default is loky's own context (a
+    ``Process`` of it cannot start a data loader worker)."""
+    import multiprocessing as mp
+
+    method = mp.get_start_method(allow_none=True)
+    return mp.get_context(method if method in mp.get_all_start_methods() else mp.get_all_start_methods()[0])
 
 
 def train_loader(cfg: TrainConfig, dataset, epoch: int, world: distributed.World = distributed.World()) -> DataLoader:

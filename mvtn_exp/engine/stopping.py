@@ -2,7 +2,8 @@
 
 A job (``job_signals``): inside it the first SIGINT / SIGTERM raises ``Interrupted`` (the caller
 writes the job's line and status; ``last.pt`` of the last finished epoch stays as it is); later
-ones are ignored while that is handled; on leaving, the handlers it replaced are back.
+ones are ignored while that is handled; on leaving, the handlers it replaced are back. A process
+forked inside it (a data loader worker) ignores both: the job shuts it down.
 
 A sweep's own process (``SweepStop``, around a multirun): on the first signal it writes the
 sweep's stop file, sends the signal on to every process that holds a job's run-dir lock (so
@@ -53,11 +54,33 @@ def job_signals():
             raise Interrupted(signum)
 
     previous = {sig: signal.signal(sig, interrupt) for sig in SIGNALS}
+    _in_job[0] = True
     try:
         yield
     finally:
+        _in_job[0] = False
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+_in_job = [False]
+
+
+def _child_leaves_signals_to_the_job() -> None:
+    """A process forked inside a job (a data loader worker) ignores SIGINT / SIGTERM: the job
+    stops on them and shuts its workers down; a worker ending on its own would turn the job's
+    clean stop into a 'worker exited unexpectedly' error."""
+    if _in_job[0]:
+        _in_job[0] = False
+        try:
+            for sig in SIGNALS:
+                signal.signal(sig, signal.SIG_IGN)
+        except ValueError:
+            pass  # (forked from a thread other than the main one: nothing to set there)
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_child_leaves_signals_to_the_job)
 
 
 def _sweep() -> tuple[int, Path] | None:
