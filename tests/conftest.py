@@ -30,6 +30,30 @@ def real_samples() -> Path:
     return SHARED
 
 
+@pytest.fixture()
+def tmpfs(tmp_path):
+    """``tmpfs("600k")``: a tmpfs of that size under ``tmp_path`` (a full disk on demand), unmounted
+    after the test; the test is skipped where this machine does not let us mount one."""
+    import subprocess
+
+    mounted = []
+
+    def mount(size: str) -> Path:
+        mnt = tmp_path / f"disk{len(mounted)}"
+        mnt.mkdir()
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)], capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here ({(r.stderr or r.stdout).strip() or 'not permitted'})")
+        mounted.append(mnt)
+        return mnt
+
+    try:
+        yield mount
+    finally:
+        for mnt in mounted:
+            subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
 def icosphere(subdivisions: int, dtype=torch.float32):
     import trimesh
 

@@ -304,17 +304,9 @@ def test_cli_full_disk_is_one_line_naming_the_cache(tree, tmp_path):
 
 
 @pytest.fixture()
-def small_disk(tmp_path):
+def small_disk(tmpfs):
     """A 12 KiB tmpfs: room for a few shapes' parts, not for a split's cache."""
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=12k", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({(r.stderr or r.stdout).strip() or 'not permitted'})")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", str(mnt)], capture_output=True)
+    return tmpfs("12k")
 
 
 def test_a_real_full_disk_names_the_file_and_leaves_no_lock(tree, small_disk):

@@ -14,17 +14,9 @@ TINY = ["epochs=1", "views=2", "image_size=32", "dataset.num_per_class=[4,2,2]",
 
 
 @pytest.fixture()
-def small_disk(tmp_path):
+def small_disk(tmpfs):
     """A 600 KiB tmpfs: room for a run's records, not for its checkpoints."""
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({(r.stderr or r.stdout).strip() or 'not permitted'})")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", str(mnt)], capture_output=True)
+    return tmpfs("600k")
 
 
 def test_a_full_disk_is_one_line_with_the_run_records_written(small_disk, tmp_path):
