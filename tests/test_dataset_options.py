@@ -35,7 +35,8 @@ def _owners(key: str) -> list[str]:
 
 
 def test_the_registry_holds_every_dataset_and_dataset_is_an_option_kind():
-    assert NAMES == ["modelnet40", "scanobjectnn", "shapenet", "synthetic", "synthetic_views"]
+    assert NAMES == ["modelnet40", "scanobjectnn", "shapenet", "shapenet_parts", "synthetic", "synthetic_parts",
+                     "synthetic_views"]
     assert "dataset" in OPTION_KINDS and "dataset" in OPTIONS
 
 
@@ -58,7 +59,7 @@ def test_a_key_of_another_dataset_is_refused_naming_the_datasets_that_have_it(na
     assert f"dataset.{key} is a key of dataset={', '.join(_owners(key))}" in line
 
 
-@pytest.mark.parametrize("argv,owner", [(["dataset=modelnet40", "dataset.rotate=y"], "synthetic, synthetic_views"),
+@pytest.mark.parametrize("argv,owner", [(["dataset=modelnet40", "dataset.rotate=y"], "synthetic, synthetic_parts, synthetic_views"),
                                         (["dataset=shapenet", "dataset.variant=obj_bg"], "scanobjectnn"),
                                         (["dataset.family=decoys"], "synthetic_views"),
                                         (["dataset=scanobjectnn", "dataset.split_csv=a.csv"], "shapenet")])

@@ -1,6 +1,6 @@
 """One schema per option: a registry per component kind, option name -> its config dataclass.
 
-The kinds are ``selector``, ``point_encoder``, ``backbone``, ``mvnet`` and ``dataset``
+The kinds are ``selector``, ``point_encoder``, ``backbone``, ``mvnet``, ``segnet`` and ``dataset``
 (``OPTIONS``). A component's own module (a dataset's: ``data/config.py``) defines its config, a
 dataclass subclassing the kind's base config (an ``OptionConfig``) whose ``name`` defaults to the
 option's name, and registers it:
@@ -35,7 +35,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 # kind -> the packages whose modules register its options
 PACKAGES = {"selector": ("mvtn_exp.selectors",), "point_encoder": ("mvtn_exp.models",),
-            "backbone": ("mvtn_exp.models",), "mvnet": ("mvtn_exp.models",), "dataset": ("mvtn_exp.data",)}
+            "backbone": ("mvtn_exp.models",), "mvnet": ("mvtn_exp.models",), "segnet": ("mvtn_exp.models",),
+            "dataset": ("mvtn_exp.data",)}
 
 
 class Options(dict):

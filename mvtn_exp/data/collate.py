@@ -17,8 +17,10 @@ def collate_shapes(batch: Sequence[dict]) -> dict:
     ``faces [F_i, 3]`` (local indices) and ``rotation [3, 3]``. Returns a dict with
     ``meshes``: packed ``Meshes`` of B shapes (``None`` when the items carry no mesh),
     ``points [B, N, 3]`` float, ``labels [B]`` long, ``names`` list[str] and, when every item has
-    one, ``rotations [B, 3, 3]`` and the ``synthetic_views`` detail frame (``detail_anchor``,
-    ``detail_axis``, ``detail_size``, each ``[B, 3]``).
+    one, ``rotations [B, 3, 3]``, ``part_labels [B, N]`` long (part datasets: a part id per point), ``face_parts [sum F]``
+    long (mesh part datasets: a part id per face, packed like ``meshes.faces``)
+    and the ``synthetic_views`` detail frame (``detail_anchor``, ``detail_axis``, ``detail_size``,
+    each ``[B, 3]``).
     """
     if not batch:
         raise ValueError("collate_shapes: empty batch")
@@ -37,6 +39,10 @@ def collate_shapes(batch: Sequence[dict]) -> dict:
                                          [torch.as_tensor(b["faces"], dtype=torch.long) for b in batch], names=names)
     if all("rotation" in b for b in batch):
         out["rotations"] = torch.stack([torch.as_tensor(b["rotation"]) for b in batch])
+    if out["meshes"] is not None and all("face_parts" in b for b in batch):  # (packed as the meshes' faces)
+        out["face_parts"] = torch.cat([torch.as_tensor(b["face_parts"], dtype=torch.long) for b in batch])
+    if all("part_labels" in b for b in batch):
+        out["part_labels"] = torch.stack([torch.as_tensor(b["part_labels"], dtype=torch.long) for b in batch])
     for key in DETAIL_KEYS:
         if all(key in b for b in batch):
             out[key] = torch.stack([torch.as_tensor(b[key]) for b in batch])

@@ -133,6 +133,23 @@ class SyntheticViewsConfig(SyntheticConfig):
                                               **self._shapes())
 
 
+@register("synthetic_parts")
+@dataclass
+class SyntheticPartsConfig(SyntheticConfig):
+    """The embedded part-segmentation meshes: 5 categories, 18 labelled parts (some seen only from
+    some sides), generated once and cached under root (``data/synthetic_parts.py``). Items add
+    ``part_labels`` (and ``face_parts`` for meshes); the dataset has ``part_names`` and ``parts_of``."""
+
+    name: str = "synthetic_parts"
+    root: str = "${paths.cache_dir}/synthetic_parts"
+    num_per_class: list[int] = field(default_factory=lambda: [16, 8, 16])
+
+    def build(self, split: str, progress: bool = True) -> Dataset:
+        from . import synthetic_parts
+
+        return synthetic_parts.SyntheticParts(self.root, split, progress=progress, **self._shapes())
+
+
 @register("modelnet40")
 @dataclass
 class ModelNet40Config(DatasetConfig):
@@ -244,3 +261,36 @@ class ShapeNetConfig(DatasetConfig):
                                      cache_dir=Path(self.cache_dir) / "shapenet", num_points=self.num_points,
                                      max_vertices=self.max_vertices, seed=self.seed, strict=self.strict,
                                      as_points=self.shape == "points", progress=progress)
+
+
+@register("shapenet_parts")
+@dataclass
+class ShapeNetPartsConfig(DatasetConfig):
+    """ShapeNet Parts: 16 categories of point clouds with a part label per point (50 parts).
+
+    The PointNet++ release (``data/shapenet_parts.py``), read once into ``cache_dir``/shapenet_parts
+    with ``num_points`` points per shape; items carry ``part_labels`` (global part ids) beside the
+    category ``label``. Point clouds only (``shape=points``); ``strict``: a broken point file stops
+    the run instead of being skipped and counted (a part outside its category always stops it)."""
+
+    name: str = "shapenet_parts"
+    root: str = "${paths.data_dir}/shapenetcore_partanno_segmentation_benchmark_v0_normal"
+    shape: str = "points"
+    num_points: int = 2048
+    strict: bool = False
+    cache_dir: str = "${paths.cache_dir}"
+
+    def validate(self) -> "ShapeNetPartsConfig":
+        super().validate()
+        if self.shape != "points":
+            raise ValueError(f"dataset.shape={self.shape}: ShapeNet Parts holds point clouds only (no meshes); "
+                             "use dataset.shape=points")
+        return self
+
+    def build(self, split: str, progress: bool = True) -> Dataset:
+        from . import shapenet_parts
+
+        require_root(self, shapenet_parts.LAYOUT)
+        return shapenet_parts.ShapeNetParts(self.root, split, cache_dir=Path(self.cache_dir) / "shapenet_parts",
+                                            num_points=self.num_points, seed=self.seed, strict=self.strict,
+                                            progress=progress)

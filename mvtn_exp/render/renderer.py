@@ -15,7 +15,7 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint
 
 from ..data.shapes import Meshes, PointClouds, host_counts, subset
-from . import accel, budget, lod, mesh_raster, nearest, point_raster, shading, soft_search
+from . import accel, budget, lod, mesh_raster, nearest, picking, point_raster, shading, soft_search
 from .cameras import Cameras, camera_to_ndc, to_camera_packed
 from .compose import Compose
 from .config import RendererConfig
@@ -81,6 +81,18 @@ class MultiViewRenderer(nn.Module):
                 deterministic_algorithms(self.cfg.deterministic):
             shapes, azim, elev, dist = full_precision(shapes, azim, elev, dist)
             return self._render(shapes, azim, elev, dist)
+
+    @torch.no_grad()
+    def primitive_index(self, shapes, azim: torch.Tensor, elev: torch.Tensor, dist=2.2) -> torch.Tensor:
+        """What each pixel shows: ``[B, M, H, W]`` long, the shape-local index of the front-most face
+        covering the pixel centre (meshes: a hard search whatever the mode, on the full mesh: level
+        of detail would renumber the faces) or of the front-most point whose splat covers it (point
+        clouds), -1 on the background. Same cameras as ``forward``; no gradient (``render/picking.py``)."""
+        if not torch.is_tensor(dist):
+            dist = torch.full(azim.shape, float(dist), device=azim.device,
+                              dtype=torch.float32 if azim.dtype in LOW_PRECISION else azim.dtype)
+        with torch.autocast(azim.device.type, enabled=False):
+            return picking.front_index(self, *full_precision(shapes, azim, elev, dist))
 
     def _render(self, shapes, azim, elev, dist) -> RenderOutput:
         """Shapes in groups within the memory budget (``render/budget.py``; one group when it fits),

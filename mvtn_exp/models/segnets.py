@@ -1,0 +1,175 @@
+"""The 2D segmentation networks of part segmentation (``segnet=NAME``): images ``[N, 3, H, W]`` ->
+per-pixel logits ``[N, num_classes, H, W]`` at the input's size.
+
+* ``deeplabv3``: the paper's network (DeepLabV3: "Rethinking Atrous Convolution for Semantic
+  Image Segmentation", Chen et al. 2017), as torchvision builds it: a ResNet of this project's
+  ``backbone`` option with layer3 and layer4 dilated instead of strided (output stride 8), the ASPP
+  head (rates 12, 24, 36 and image pooling, 256 channels), and optionally the auxiliary FCN head on
+  layer3 (``aux``, what the paper's 61 M parameters with ResNet-101 count). Dilation keeps every
+  key and shape of the ResNet, so ImageNet weights (``backbone.weights=imagenet``) load as they are.
+* ``fcn_small``: a small fully convolutional encoder-decoder for CPU runs and tests.
+
+A segnet is one registered config class (``SegNetConfig``): ``build(num_classes, backbone,
+weights)`` gives the network; ``forward(x)`` returns the logits (``aux_logits`` holds the
+auxiliary head's after a training forward, None otherwise).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Optional
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from ..config.checks import at_least
+from ..config.options import OPTIONS, OptionConfig
+from .backbones import Bottleneck, ResNet, _init_weights, build_backbone
+
+
+def _conv_bn_relu(cin: int, cout: int, k: int = 3, dilation: int = 1) -> nn.Sequential:
+    pad = dilation * (k // 2)
+    return nn.Sequential(nn.Conv2d(cin, cout, k, padding=pad, dilation=dilation, bias=False), nn.BatchNorm2d(cout),
+                         nn.ReLU(inplace=True))
+
+
+def dilate(resnet: ResNet, layer: nn.Sequential, dilation: int, previous: int) -> None:
+    """Make ``layer`` of ``resnet`` keep its input's resolution: its stride goes, its 3x3 convs
+    dilate (torchvision's ``replace_stride_with_dilation``: the first block keeps ``previous``,
+    the others take ``dilation``); keys and shapes are unchanged."""
+    for i, block in enumerate(layer):
+        d = previous if i == 0 else dilation
+        convs = [block.conv2] if isinstance(block, Bottleneck) else [block.conv1, block.conv2]
+        for conv in convs:
+            if conv.kernel_size == (3, 3):
+                conv.stride, conv.dilation, conv.padding = (1, 1), (d, d), (d, d)
+            else:
+                conv.stride = (1, 1)
+        if block.downsample is not None:
+            block.downsample[0].stride = (1, 1)
+
+
+class ASPP(nn.Module):
+    """Atrous spatial pyramid pooling: a 1x1 branch, one 3x3 branch per rate, and image pooling,
+    each ``out`` channels, concatenated and projected to ``out`` (dropout 0.5, as torchvision)."""
+
+    def __init__(self, cin: int, rates=(12, 24, 36), out: int = 256) -> None:
+        super().__init__()
+        self.branches = nn.ModuleList([_conv_bn_relu(cin, out, 1)] + [_conv_bn_relu(cin, out, 3, r) for r in rates])
+        self.pool = nn.Sequential(nn.AdaptiveAvgPool2d(1), nn.Conv2d(cin, out, 1, bias=False), nn.BatchNorm2d(out),
+                                  nn.ReLU(inplace=True))
+        self.project = nn.Sequential(_conv_bn_relu(out * (len(rates) + 2), out, 1), nn.Dropout(0.5))
+
+    def forward(self, x: Tensor) -> Tensor:
+        pooled = F.interpolate(self.pool(x), size=x.shape[-2:], mode="bilinear", align_corners=False)
+        return self.project(torch.cat([b(x) for b in self.branches] + [pooled], 1))
+
+
+class DeepLabV3(nn.Module):
+    """DeepLabV3 on a dilated ResNet (module docstring): ``[N, 3, H, W] -> [N, num_classes, H, W]``."""
+
+    def __init__(self, resnet: ResNet, num_classes: int, aux: bool = False) -> None:
+        super().__init__()
+        if not isinstance(resnet, ResNet):
+            raise ValueError(f"segnet=deeplabv3 needs a ResNet backbone, got {type(resnet).__name__}")
+        dilate(resnet, resnet.layer3, 2, 1)
+        dilate(resnet, resnet.layer4, 4, 2)
+        resnet.fc = None  # (the classifier is not used: no parameter without a gradient)
+        self.backbone = resnet
+        c4 = resnet.feature_dim
+        self.head = nn.Sequential(ASPP(c4), _conv_bn_relu(256, 256), nn.Conv2d(256, num_classes, 1))
+        self.aux_head = nn.Sequential(_conv_bn_relu(c4 // 2, 256), nn.Dropout(0.1), nn.Conv2d(256, num_classes, 1)) \
+            if aux else None
+        self.aux_logits: Optional[Tensor] = None
+        _init_weights(self.head)
+        if self.aux_head is not None:
+            _init_weights(self.aux_head)
+
+    def forward(self, x: Tensor) -> Tensor:
+        size = x.shape[-2:]
+        r = self.backbone
+        r._check_input(x)
+        x = r.maxpool(r.relu(r.bn1(r.conv1(x))))
+        mid = r.layer3(r.layer2(r.layer1(x)))
+        out = F.interpolate(self.head(r.layer4(mid)), size=size, mode="bilinear", align_corners=False)
+        self.aux_logits = None
+        if self.aux_head is not None and self.training:
+            self.aux_logits = F.interpolate(self.aux_head(mid), size=size, mode="bilinear", align_corners=False)
+        return out
+
+
+class SmallFCN(nn.Module):
+    """A small fully convolutional net: three strided stages (``width``, 2x, 4x channels), a
+    dilated context conv, and a decoder that adds each stage back as it upsamples:
+    ``[N, in_channels, H, W] -> [N, num_classes, H, W]`` (any H, W)."""
+
+    def __init__(self, num_classes: int, in_channels: int = 3, width: int = 16) -> None:
+        super().__init__()
+        w = (width, 2 * width, 4 * width)
+        self.stem = _conv_bn_relu(in_channels, w[0])
+        self.down = nn.ModuleList([nn.Sequential(nn.MaxPool2d(2, ceil_mode=True), _conv_bn_relu(a, b))
+                                   for a, b in zip(w, w[1:])])
+        self.context = _conv_bn_relu(w[2], w[2], 3, dilation=2)
+        self.up = nn.ModuleList([_conv_bn_relu(b, a) for a, b in zip(w, w[1:])][::-1])
+        self.classifier = nn.Conv2d(w[0], num_classes, 1)
+        self.aux_logits: Optional[Tensor] = None
+        _init_weights(self)
+
+    def forward(self, x: Tensor) -> Tensor:
+        skips = [self.stem(x)]
+        for down in self.down:
+            skips.append(down(skips[-1]))
+        y = self.context(skips.pop())
+        for up in self.up:
+            skip = skips.pop()
+            y = skip + up(F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False))
+        return self.classifier(y)
+
+
+# ----------------------------------------------------------------------------- config options (segnet=NAME)
+register = OPTIONS["segnet"].register
+
+
+@dataclass
+class SegNetConfig(OptionConfig):
+    """The 2D segmentation network C of part segmentation, shared over views."""
+
+    kind = "segnet"
+    uses_backbone: ClassVar[bool] = False  # whether it is built on the ``backbone`` option
+
+    def build(self, num_classes: int, backbone: str = "resnet50", weights: Optional[str] = None) -> nn.Module:
+        raise NotImplementedError(f"{type(self).__name__}.build")
+
+
+@register("deeplabv3")
+@dataclass
+class DeepLabV3Config(SegNetConfig):
+    """DeepLabV3 (ASPP on a dilated ResNet of the ``backbone`` option), the paper's 2D network.
+
+    ``aux``: the auxiliary FCN head on layer3 (its loss weighs ``aux_weight``)."""
+
+    name: str = "deeplabv3"
+    aux: bool = False
+    aux_weight: float = 0.4
+
+    uses_backbone: ClassVar[bool] = True
+
+    def build(self, num_classes: int, backbone: str = "resnet50", weights: Optional[str] = None) -> nn.Module:
+        return DeepLabV3(build_backbone(backbone, 1000, weights=weights), num_classes, aux=self.aux)
+
+
+@register("fcn_small")
+@dataclass
+class SmallFCNConfig(SegNetConfig):
+    """A small fully convolutional net for CPU runs (``width`` channels in its first stage)."""
+
+    name: str = "fcn_small"
+    width: int = 16
+
+    def validate(self) -> "SmallFCNConfig":
+        super().validate()
+        at_least("segnet.width", self.width, 1)
+        return self
+
+    def build(self, num_classes: int, backbone: str = "resnet50", weights: Optional[str] = None) -> nn.Module:
+        return SmallFCN(num_classes, width=self.width)
