@@ -4,9 +4,12 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from studies import STUDIES
 
 
+@pytest.mark.slow  # (longer than 5 s on 2 cores and covered in part elsewhere: make test-all)
 def test_each_setting_times_every_target_in_its_own_process():
     out = subprocess.run([sys.executable, str(STUDIES / "heap_trim.py"), "--trim-mib", "64", "256", "--size", "32",
                           "--views", "2"], capture_output=True, text=True, check=True, timeout=300).stdout

@@ -180,7 +180,7 @@ def default_folder_sweeps(cache, tmp_path_factory):
     return get
 
 
-@pytest.mark.parametrize("name", ["joblib", pytest.param("submitit_local", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("name", [pytest.param("joblib", marks=pytest.mark.slow), pytest.param("submitit_local", marks=pytest.mark.slow)])
 def test_launcher_jobs_land_in_the_announced_sweep_dir_with_a_complete_summary(default_folder_sweeps, name):
     cwd, r = default_folder_sweeps(name)
     assert r.returncode == 1, r.stderr[-3000:]  # one job failed: the sweep says so

@@ -83,6 +83,7 @@ def test_list_of_an_unknown_kind_is_one_line_naming_the_kinds(argv, capsys):
         list_options("selectors")
 
 
+@pytest.mark.slow  # (longer than 5 s on 2 cores and covered in part elsewhere: make test-all)
 def test_list_and_help_from_the_command_line():
     """The installed entry point: ``--list mvnet`` exits 0 before Hydra; ``--help`` mentions ``--list``."""
     r = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "--list", "mvnet"], cwd=ROOT,

@@ -118,7 +118,8 @@ def mvcnn_run(trees, tmp_path_factory, published_weights) -> Path:
     return run
 
 
-SLOW = {"paper_vit_pretraining"}  # ViT-B/16 (86 M parameters): ~17 s on 2 cores
+SLOW = {"paper_vit_pretraining",  # ViT-B/16 (86 M parameters): ~17 s on 2 cores
+        "paper_color", "paper_resnet50_pretraining", "paper_view_transfer"}  # (~5 s each; MVCNN as paper_modelnet40_classification)
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n

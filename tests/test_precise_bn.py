@@ -113,6 +113,7 @@ def test_eval_scope_leaves_a_learned_g_training_as_without(tmp_path):
     assert "train_bn" not in sa and torch.equal(s0["rng"]["torch"], se["rng"]["torch"])
 
 
+@pytest.mark.slow  # (longer than 5 s on 2 cores and covered in part elsewhere: make test-all)
 def test_eval_scope_resumes_exactly(tmp_path):
     cache = str(tmp_path / "cache")
     kw = {**SMOOTHED, "selector.bn_recalibrate": 2, "selector.bn_recalibrate_scope": "eval"}

@@ -16,7 +16,8 @@ def _params(net: torch.nn.Module) -> int:
     return sum(p.numel() for p in net.parameters())
 
 
-@pytest.mark.parametrize("layers,expected", [([3, 4, 6, 3], 42_004_074), ([3, 4, 23, 3], 60_996_202)])
+@pytest.mark.parametrize("layers,expected", [([3, 4, 6, 3], 42_004_074),
+                                             pytest.param([3, 4, 23, 3], 60_996_202, marks=pytest.mark.slow)])
 def test_deeplabv3_has_the_parameters_of_torchvisions_published_models(layers, expected):
     """torchvision's deeplabv3_resnet50 / _resnet101 with the auxiliary head, 21 classes (the
     paper's MVPartSeg DeepLabV3: 61 M)."""
@@ -51,13 +52,13 @@ def test_the_small_fcn_maps_any_size_to_per_pixel_logits_and_learns():
     opt = torch.optim.Adam(net.parameters(), 1e-2)
     net.train()
     losses = []
-    for _ in range(60):
+    for _ in range(40):
         loss = torch.nn.functional.cross_entropy(net(x), target)
         opt.zero_grad()
         loss.backward()
         opt.step()
         losses.append(loss.item())
-    assert losses[-1] < 0.3 * losses[0]
+    assert losses[-1] < 0.5 * losses[0]  # (0.26 after 40 steps on this machine)
 
 
 @pytest.mark.parametrize("name", sorted(OPTIONS["segnet"]))
