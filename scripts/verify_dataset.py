@@ -2,6 +2,7 @@
 
     python scripts/verify_dataset.py modelnet40 data/ModelNet40
     python scripts/verify_dataset.py scanobjectnn data/h5_files --manifest scanobjectnn.sha256
+    python scripts/verify_dataset.py shapenet_parts data/shapenetcore_partanno_segmentation_benchmark_v0_normal
     python scripts/verify_dataset.py modelnet40 data/ModelNet40 --check scanobjectnn.sha256
 
 Exit 0 when the layout and the official counts match, 1 when something differs (each problem one
@@ -61,6 +62,42 @@ def shapenet(root: Path, split_csv: Path) -> tuple[list[Path], list[str]]:
     return files, problems
 
 
+def shapenet_parts(root: Path) -> tuple[list[Path], list[str]]:
+    """The category file, the three official split lists with their counts, and every listed file."""
+    from mvtn_exp.data import shapenet_parts as sp
+    from mvtn_exp.data.mesh_io import ShapeFileError
+
+    category_path = root / sp.CATEGORY_FILE
+    if not category_path.is_file():
+        return [], [f"{category_path}: missing"]
+    try:
+        synsets = sp.read_categories(category_path)
+    except ShapeFileError as exc:
+        return [category_path], [str(exc)]
+    files, problems = [category_path], []
+    if len(synsets) != len(sp.CATEGORIES):
+        problems.append(f"{category_path}: {len(synsets)} categories, expected {len(sp.CATEGORIES)}")
+    for split, expected in sp.EXPECTED.items():
+        path = root / sp.SPLIT_FILE.format(split)
+        try:
+            entries = sp.read_split(path, synsets, category_path) if path.is_file() else None
+        except ShapeFileError as exc:
+            problems.append(str(exc))
+            continue
+        if entries is None:
+            problems.append(f"{path}: missing")
+            continue
+        files.append(path)
+        if len(entries) != expected:
+            problems.append(f"{path}: {len(entries)} shapes, expected {expected}")
+        shapes = [root / synset / f"{name}.txt" for synset, name in entries]
+        missing = sum(not f.is_file() for f in shapes)
+        if missing:
+            problems.append(f"{root}: {missing} of {len(shapes)} point files of {path.name} missing (<root>/<synset>/<id>.txt)")
+        files += [f for f in shapes if f.is_file()]
+    return files, problems
+
+
 def sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -71,7 +108,7 @@ def sha256(path: Path) -> str:
 
 def main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("dataset", choices=[*MODELNET, "scanobjectnn", "shapenet"])
+    p.add_argument("dataset", choices=[*MODELNET, "scanobjectnn", "shapenet", "shapenet_parts"])
     p.add_argument("root", type=Path)
     p.add_argument("--split-csv", type=Path, help="shapenet: SHREC17 all.csv")
     p.add_argument("--manifest", type=Path, help="write SHA-256 of every file to this file")
@@ -87,6 +124,8 @@ def main(argv: list[str]) -> int:
         files, problems = shapenet(a.root, a.split_csv)
     elif a.dataset == "scanobjectnn":
         files, problems = scanobjectnn(a.root)
+    elif a.dataset == "shapenet_parts":
+        files, problems = shapenet_parts(a.root)
     else:
         files, problems = modelnet(a.root, a.dataset)
     if a.manifest or a.check:

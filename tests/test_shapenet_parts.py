@@ -8,6 +8,7 @@ import json
 import logging
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -276,3 +277,18 @@ def test_prepare_cli_prints_a_wrong_part_in_one_line_with_exit_2(tree, tmp_path)
                         f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr[-2000:]
     assert r.stderr.strip().splitlines() == [f"mvtn-prepare: error: {path}:3: part 7 is not a part of Bag (4-5)"]
+
+
+def test_verify_dataset_counts_the_split_lists_and_names_each_problem(tree, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("verify_dataset", Path(__file__).parents[1] / "scripts" / "verify_dataset.py")
+    verify = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(verify)
+    _file(tree, "Bag", "b2").unlink()
+    assert verify.main(["shapenet_parts", str(tree)]) == 1
+    out = capsys.readouterr().out.strip().splitlines()
+    assert f"{tree / 'synsetoffset2category.txt'}: 3 categories, expected 16" in out
+    assert f"{tree / 'train_test_split' / 'shuffled_train_file_list.json'}: 4 shapes, expected 12137" in out
+    assert f"{tree}: 1 of 2 point files of shuffled_test_file_list.json missing (<root>/<synset>/<id>.txt)" in out
+    assert out[-1] == f"shapenet_parts at {tree}: 10 files, 5 problem(s)"  # (the category file, 3 lists, 6 point files)
