@@ -123,3 +123,22 @@ def test_the_mean_lift_passes_gradients_to_the_pixels_it_used():
 def test_an_unknown_fusion_is_refused():
     with pytest.raises(ValueError, match="fuse='vote'"):
         lifting.lift(torch.zeros(1, 1, 2, 1, 1), torch.zeros(1, 1, 1, 1, dtype=torch.long), 1, fuse="vote")
+
+
+def test_the_embedded_part_meshes_lift_exactly_through_the_faces_their_points_lie_on(tmp_path):
+    from mvtn_exp.data.collate import collate_shapes
+    from mvtn_exp.data.synthetic_parts import SyntheticParts
+
+    ds = SyntheticParts(tmp_path, "test", num_per_class=(1, 1, 1), num_points=512, progress=False)
+    batch = collate_shapes([ds[i] for i in range(len(ds))])
+    meshes = batch["meshes"]
+    B = len(batch["points"])
+    face_parts = lifting.per_shape(batch["face_parts"], meshes.faces_per_shape)
+    assert face_parts.shape == (B, int(meshes.faces_per_shape.max()))
+    r = MultiViewRenderer(image_size=96)
+    index = r.primitive_index(meshes, AZIM.expand(B, -1), ELEV.expand(B, -1))
+    labels = lifting.pixel_labels(index, face_parts)
+    logits = torch.nn.functional.one_hot(labels.clamp(min=0), ds.num_parts).permute(0, 1, 4, 2, 3).float()
+    scores, seen = lifting.lift(logits * (labels >= 0)[:, :, None], index, face_parts.shape[1], batch["point_faces"])
+    assert 0.5 < seen.float().mean() < 1.0
+    assert torch.equal(scores[seen].argmax(-1), batch["part_labels"][seen])  # every seen point, exactly

@@ -114,6 +114,8 @@ def test_points_lie_on_faces_of_their_own_part(splits):
         own = it["face_parts"].numpy()[None] == it["part_labels"].numpy()[:, None]
         assert dist.min(1).max() < 1e-5, it["name"]
         assert np.where(own, dist, np.inf).min(1).max() < 1e-5, it["name"]
+        on = it["point_faces"].numpy()  # the face each point was sampled on: on it, with its part
+        assert dist[np.arange(len(on)), on].max() < 1e-5 and (it["face_parts"].numpy()[on] == it["part_labels"].numpy()).all()
 
 
 # ------------------------------------------------------------------------------- determinism, cache

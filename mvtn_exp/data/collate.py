@@ -18,7 +18,8 @@ def collate_shapes(batch: Sequence[dict]) -> dict:
     ``meshes``: packed ``Meshes`` of B shapes (``None`` when the items carry no mesh),
     ``points [B, N, 3]`` float, ``labels [B]`` long, ``names`` list[str] and, when every item has
     one, ``rotations [B, 3, 3]``, ``part_labels [B, N]`` long (part datasets: a part id per point), ``face_parts [sum F]``
-    long (mesh part datasets: a part id per face, packed like ``meshes.faces``)
+    long (mesh part datasets: a part id per face, packed like ``meshes.faces``), ``point_faces [B, N]``
+    long (the shape-local face each point lies on)
     and the ``synthetic_views`` detail frame (``detail_anchor``, ``detail_axis``, ``detail_size``,
     each ``[B, 3]``).
     """
@@ -41,6 +42,8 @@ def collate_shapes(batch: Sequence[dict]) -> dict:
         out["rotations"] = torch.stack([torch.as_tensor(b["rotation"]) for b in batch])
     if out["meshes"] is not None and all("face_parts" in b for b in batch):  # (packed as the meshes' faces)
         out["face_parts"] = torch.cat([torch.as_tensor(b["face_parts"], dtype=torch.long) for b in batch])
+    if out["meshes"] is not None and all("point_faces" in b for b in batch):
+        out["point_faces"] = torch.stack([torch.as_tensor(b["point_faces"], dtype=torch.long) for b in batch])
     if all("part_labels" in b for b in batch):
         out["part_labels"] = torch.stack([torch.as_tensor(b["part_labels"], dtype=torch.long) for b in batch])
     for key in DETAIL_KEYS:

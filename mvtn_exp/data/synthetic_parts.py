@@ -33,7 +33,7 @@ from .packed import PACKED_ARRAYS, PackedShapes, cached_arrays, triangle_areas, 
 from .synthetic import Part, _areas, _box, _check, _cyl, _legs, _outward, _revolve, _arc_tube, _tm, random_rotation
 from .synthetic_cache import SPLITS, cache_file, split_count
 
-GEOMETRY_VERSION = "1"  # bump whenever a builder changes: old caches then miss
+GEOMETRY_VERSION = "2"  # bump whenever a builder or the cached arrays change: old caches then miss
 PARTS = {
     "airplane": ("engines", "fuselage", "tail", "wings"),
     "chair": ("arms", "back", "legs", "seat"),
@@ -45,7 +45,7 @@ CLASSES: list[str] = sorted(PARTS)
 PART_NAMES: list[str] = [f"{c}/{p}" for c in CLASSES for p in sorted(PARTS[c])]
 PARTS_OF: dict[int, list[int]] = {i: [PART_NAMES.index(f"{c}/{p}") for p in sorted(PARTS[c])]
                                   for i, c in enumerate(CLASSES)}
-EXTRA = ("rotations", "part_labels", "face_parts")
+EXTRA = ("rotations", "part_labels", "face_parts", "point_faces")
 Labelled = list[tuple[str, Part]]  # (part name within the category, closed mesh)
 
 
@@ -210,14 +210,14 @@ def make_shape(cls: str, split: str, k: int, seed: int, rotate: str, max_faces: 
     _check(name, v, f)
     pts, on = sample_faces(v.astype(np.float64), f, num_points, point_rng)
     return {"verts": v, "faces": f, "face_parts": fp, "points": pts.astype(np.float32), "part_labels": fp[on],
-            "label": CLASSES.index(cls), "name": name, "rotations": R.astype(np.float32)}
+            "point_faces": on, "label": CLASSES.index(cls), "name": name, "rotations": R.astype(np.float32)}
 
 
 def generate_split(split: str, count: int, seed: int, rotate: str, max_faces: int, num_points: int,
                    progress: bool = True) -> dict[str, np.ndarray]:
     """``count`` shapes per category -> packed arrays: ``packed.PACKED_ARRAYS`` plus ``rotations
-    [N, 3, 3] float32``, ``part_labels [N, P] int64`` and ``face_parts [sum F] int64`` (packed like
-    ``faces``)."""
+    [N, 3, 3] float32``, ``part_labels [N, P] int64``, ``face_parts [sum F] int64`` (packed like
+    ``faces``) and ``point_faces [N, P] int64`` (the shape-local face each point lies on)."""
     from tqdm.auto import tqdm
 
     shapes = []
@@ -239,6 +239,7 @@ def generate_split(split: str, count: int, seed: int, rotate: str, max_faces: in
             "names": np.asarray([s["name"] for s in shapes], dtype=str),
             "rotations": np.asarray([s["rotations"] for s in shapes], np.float32).reshape(-1, 3, 3),
             "part_labels": np.asarray([s["part_labels"] for s in shapes], np.int64).reshape(-1, num_points),
+            "point_faces": np.asarray([s["point_faces"] for s in shapes], np.int64).reshape(-1, num_points),
             "face_parts": cat("face_parts", np.int64, (-1,))}
 
 
@@ -254,8 +255,9 @@ def _validate(a: dict[str, np.ndarray], n: int, num_points: int) -> None:
     """Raise ValueError unless the arrays form ``n`` well-formed shapes whose point and face parts
     all belong to their category (guards against misreads)."""
     validate(a, n, num_points, len(CLASSES))
-    pl, fp = a["part_labels"], a["face_parts"]
+    pl, fp, on = a["part_labels"], a["face_parts"], a["point_faces"]
     if (a["rotations"].shape != (n, 3, 3) or pl.shape != (n, num_points) or fp.shape != (len(a["faces"]),)
+            or on.shape != (n, num_points) or (on.size and not (0 <= on.min() and (on < a["faces_per_shape"][:, None]).all()))
             or (pl.size and not 0 <= min(pl.min(), fp.min()) <= max(pl.max(), fp.max()) < len(PART_NAMES))):
         raise ValueError("inconsistent arrays")
     ok = _allowed()
@@ -272,7 +274,8 @@ class SyntheticParts(PackedShapes):
     ``part_labels [P] int64`` (global part ids: the part of the face each point lies on),
     ``label int`` (category index), ``name str`` (``"lamp_test_0003"``), ``rotation [3, 3] float32``
     (verts = canonical @ R^T) and, unless ``as_points``, ``verts [V, 3] float32``, ``faces [F, 3]
-    int64`` and ``face_parts [F] int64``. ``classes``: sorted category names; ``part_names``: global
+    int64``, ``face_parts [F] int64`` and ``point_faces [P] int64`` (the face each point lies on: the
+    primitive its label is lifted from). ``classes``: sorted category names; ``part_names``: global
     part names (``"lamp/shade"``); ``parts_of``: category index -> sorted global part ids.
     """
 
@@ -302,4 +305,5 @@ class SyntheticParts(PackedShapes):
         item["part_labels"] = torch.from_numpy(self._a["part_labels"][i].astype(np.int64))
         if not self.as_points:
             item["face_parts"] = torch.from_numpy(self._a["face_parts"][self._fo[i]:self._fo[i + 1]].astype(np.int64))
+            item["point_faces"] = torch.from_numpy(self._a["point_faces"][i].astype(np.int64))
         return item

@@ -30,6 +30,16 @@ def pixel_labels(index: torch.Tensor, prim_labels: torch.Tensor) -> torch.Tensor
     return torch.where(flat >= 0, labels, torch.full_like(labels, IGNORE)).view(B, M, H, W)
 
 
+def per_shape(packed: torch.Tensor, counts: torch.Tensor, fill: int = IGNORE) -> torch.Tensor:
+    """Values packed shape after shape (``face_parts [sum F]``) -> ``[B, max F]``, ``fill`` past
+    each shape's own count (what ``pixel_labels`` takes for a mesh batch)."""
+    B, width = len(counts), int(counts.max()) if len(counts) else 0
+    out = torch.full((B, width), fill, dtype=packed.dtype, device=packed.device)
+    column = torch.arange(width, device=packed.device)
+    out[column[None] < counts[:, None].to(packed.device)] = packed
+    return out
+
+
 def lift(logits: torch.Tensor, index: torch.Tensor, num_prims: int, prim_of_point: torch.Tensor | None = None,
          fuse: str = "mean") -> tuple[torch.Tensor, torch.Tensor]:
     """``logits [B, M, C, H, W]``, ``index [B, M, H, W]`` -> ``(scores [B, P, C], seen [B, P] bool)``.
