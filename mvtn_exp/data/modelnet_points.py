@@ -63,7 +63,7 @@ from torch.utils.data import Dataset
 from .h5io import read_labelled_clouds
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere, zup_to_yup
 from .modelnet import CountWarning, val_mask
-from .packed import log_skipped, skip
+from .packed import log_skipped, skip, wrap_index
 
 FORMATS = ("normal_resampled", "ply_hdf5_2048")
 SPLITS = ("train", "val", "test")
@@ -310,8 +310,6 @@ class ModelNetPoints(Dataset):
         return len(self.labels)
 
     def __getitem__(self, i: int) -> dict:
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"ModelNet40 {self.format} {self.split}: index {i} out of range for {len(self)} clouds")
-        i = i % len(self)
+        i = wrap_index(i, len(self), f"ModelNet40 {self.format} {self.split}")
         return {"points": torch.from_numpy(self._points[i].copy()), "label": int(self.labels[i]),
                 "name": self.names[i]}

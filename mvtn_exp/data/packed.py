@@ -252,6 +252,14 @@ def load_npz(path: Path, settings: dict, keys, check) -> Optional[dict[str, np.n
         return None
 
 
+def wrap_index(i: int, n: int, what: str) -> int:
+    """``i`` in ``[-n, n)`` as an index in ``[0, n)`` (Python's negative indices); else IndexError
+    ``<what>: index i out of range for n``."""
+    if not -n <= i < n:
+        raise IndexError(f"{what}: index {i} out of range for {n}")
+    return i % n
+
+
 class PackedShapes(Dataset):
     """A dataset split held as packed arrays. ``ds[i]`` -> dict: ``points [P, 3] float32``,
     ``label int``, ``name str`` and, unless ``as_points``, ``verts [V, 3] float32`` and
@@ -268,9 +276,7 @@ class PackedShapes(Dataset):
         return len(self.labels)
 
     def item(self, i: int) -> dict:
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"{type(self).__name__} {self.split}: index {i} out of range for {len(self)} shapes")
-        i = i % len(self)
+        i = wrap_index(i, len(self), f"{type(self).__name__} {self.split}")
         a = self._a
         item = {"points": torch.from_numpy(a["points"][i].copy()), "label": int(a["labels"][i]),
                 "name": self.names[i]}

@@ -39,7 +39,7 @@ from torch.utils.data import Dataset
 from .h5io import read_labelled_clouds
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere
 from .modelnet import CountWarning, val_mask
-from .packed import log_skipped, skip
+from .packed import log_skipped, skip, wrap_index
 
 CLASSES = ["bag", "bin", "box", "cabinet", "chair", "desk", "display", "door", "shelf", "table", "bed", "pillow",
            "sink", "sofa", "toilet"]
@@ -144,10 +144,7 @@ class ScanObjectNN(Dataset):
         return np.sort(rng.choice(POINTS, size=self.num_points, replace=False))
 
     def __getitem__(self, i: int) -> dict:
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"ScanObjectNN {self.variant} {self.split}: index {i} out of range for {len(self)} "
-                             f"clouds")
-        i = i % len(self)
+        i = wrap_index(i, len(self), f"ScanObjectNN {self.variant} {self.split}")
         row = int(self._rows[i])
         idx = self.point_indices(row)
         pts = normalize_unit_sphere(self._data[row][idx].astype(np.float64)).astype(np.float32)

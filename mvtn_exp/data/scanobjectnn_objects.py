@@ -32,7 +32,7 @@ from torch.utils.data import Dataset
 
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere
 from .modelnet import val_mask
-from .packed import log_skipped, skip
+from .packed import log_skipped, skip, wrap_index
 from .scanobjectnn import CLASSES, SPLITS
 
 FOLDER = "object_dataset"
@@ -156,9 +156,7 @@ class ScanObjectNNObjects(Dataset):
         return np.sort(rng.choice(available, size=self.num_points, replace=available < self.num_points))
 
     def __getitem__(self, i: int) -> dict:
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"ScanObjectNN {self.variant} {self.split}: index {i} out of range for {len(self)} objects")
-        i = i % len(self)
+        i = wrap_index(i, len(self), f"ScanObjectNN {self.variant} {self.split}")
         path = self.paths[i]
         xyz, mask = object_points(read_bin(path), self.variant, path)
         idx = self.point_indices(self.names[i], len(xyz))

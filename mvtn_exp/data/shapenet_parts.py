@@ -46,7 +46,7 @@ import torch
 from torch.utils.data import Dataset
 
 from .mesh_io import DatasetNotFound, ShapeFileError, normalize_unit_sphere
-from .packed import cached_arrays, files_fingerprint, log_skipped, skip
+from .packed import cached_arrays, files_fingerprint, log_skipped, skip, wrap_index
 
 PREP_VERSION = "1"  # bump when preprocessing or the skip reasons change: old caches then miss
 SPLITS = ("train", "val", "test")
@@ -293,9 +293,7 @@ class ShapeNetParts(Dataset):
         return len(self.labels)
 
     def __getitem__(self, i: int) -> dict:
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"ShapeNet Parts {self.split}: index {i} out of range for {len(self)} shapes")
-        i = i % len(self)
+        i = wrap_index(i, len(self), f"ShapeNet Parts {self.split}")
         return {"points": torch.from_numpy(self._points[i].copy()),
                 "part_labels": torch.from_numpy(self._parts[i].astype(np.int64)),
                 "label": int(self.labels[i]), "name": self.names[i]}
