@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -371,7 +372,7 @@ def sweep_interrupted(signum: int) -> int:
     from ..runs.sweep import collect, expected_jobs
 
     sweep = stopping.current_sweep_dir()
-    name = stopping.signal.Signals(signum).name
+    name = signal.Signals(signum).name
     if sweep is None or not sweep.is_dir():
         print(f"mvtn-train: sweep interrupted by {name} before any job started", file=sys.stderr)
         return 128 + signum
