@@ -47,14 +47,14 @@ class MVTN(nn.Module):
 
     def forward(self, batch: dict) -> dict:
         """The views returned are world directions; with ``canonical`` G and R work in each
-        shape's principal frame, and the views are turned back for the record."""
+        shape's principal frame, and the views are turned back for the record (``render_views``:
+        the views as R rendered them, ``(azim, elev, dist)`` each ``[B, M]``)."""
         views = self.select(batch)
         images = self.render(batch, *views)
         logits, features = self.classify(images, views, batch)
-        if self.canonical is not None:
-            views = world_views(views, self.canonical(batch)[1])
-        return {"logits": logits, "features": features, "azim": views[0], "elev": views[1], "dist": views[2],
-                "images": images}
+        world = views if self.canonical is None else world_views(views, self.canonical(batch)[1])
+        return {"logits": logits, "features": features, "azim": world[0], "elev": world[1], "dist": world[2],
+                "images": images, "render_views": views}
 
     def posed(self, batch: dict) -> dict:
         """The batch G and R see: as given, or each shape in its principal frame (``canonical``;
@@ -101,16 +101,26 @@ class MVTN(nn.Module):
             views = getattr(self, name)(views)
         return views
 
-    def render_output(self, batch: dict, azim, elev, dist):
-        """R: the batch's shapes seen from ``[B, M]`` views -> ``RenderOutput`` (images and coverage)."""
+    def shapes(self, batch: dict):
+        """What R renders of the batch, posed: its ``meshes`` (``shape == "mesh"``) or a
+        ``PointClouds`` of its ``points``, on C's device."""
         batch = self.posed(batch)
         if self.shape == "points":
-            shapes = PointClouds.from_padded(batch["points"].to(self.device))
-        else:
-            if batch.get("meshes") is None:
-                raise ValueError("MVTN(shape='mesh'): the batch carries no meshes")
-            shapes = batch["meshes"].to(self.device)
-        return self.renderer(shapes, azim, elev, dist)
+            return PointClouds.from_padded(batch["points"].to(self.device))
+        if batch.get("meshes") is None:
+            raise ValueError("MVTN(shape='mesh'): the batch carries no meshes")
+        return batch["meshes"].to(self.device)
+
+    def render_output(self, batch: dict, azim, elev, dist):
+        """R: the batch's shapes seen from ``[B, M]`` views -> ``RenderOutput`` (images and coverage)."""
+        return self.renderer(self.shapes(batch), azim, elev, dist)
+
+    def primitive_index(self, batch: dict, azim, elev, dist):
+        """What each pixel of R's views ``[B, M]`` shows: ``[B, M, H, W]`` long, the shape-local face
+        (meshes) or point (clouds) index, -1 on the background; no gradient (``render/picking.py``)."""
+        with torch.no_grad():
+            return self.renderer.primitive_index(self.shapes(batch), azim.detach(), elev.detach(),
+                                                 torch.as_tensor(dist).detach())
 
     def render(self, batch: dict, azim, elev, dist):
         """R: the batch's shapes seen from ``[B, M]`` views -> images ``[B, M, 3, H, W]``; for a C that
@@ -127,7 +137,9 @@ class MVTN(nn.Module):
 
 
 def build_mvtn(cfg: TrainConfig, num_classes: int, pretrained_weights: bool = True) -> MVTN:
-    """G, R and C as ``cfg`` (a validated ``TrainConfig``) describes them, for ``num_classes`` classes.
+    """G, R and C as ``cfg`` (a validated ``TrainConfig``) describes them, C with ``num_classes``
+    outputs (the task head's ``num_outputs``); C is ``cfg.mvnet``'s, or ``cfg.segnet``'s over every
+    view under ``task=segmentation``.
 
     C is built first and G's initialisation draws from a forked RNG, so that at the same seed C's
     initial weights and every later random draw (order, light, colour) are the same whichever
@@ -135,8 +147,11 @@ def build_mvtn(cfg: TrainConfig, num_classes: int, pretrained_weights: bool = Tr
     pretrained_weights: load ``backbone.weights`` (``imagenet`` from torch's hub cache, downloaded
     once: ``models/pretrained.py``); False when a checkpoint's weights replace them anyway (evaluation)."""
     weights = pretrained.resolve(cfg.backbone.name, cfg.backbone.weights) if pretrained_weights else None
-    mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=weights, input_norm=cfg.backbone.input_norm,
-                            point_encoder=cfg.point_encoder)
+    if cfg.task.name == "segmentation":  # C: the 2D segmentation network over every view
+        mvnet = cfg.segnet.build_c(num_classes, cfg.backbone.name, weights=weights, input_norm=cfg.backbone.input_norm)
+    else:
+        mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=weights, input_norm=cfg.backbone.input_norm,
+                                point_encoder=cfg.point_encoder)
     with torch.random.fork_rng(devices=[]):
         selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder)
     model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,

@@ -40,7 +40,9 @@ def test_every_group_option_composes(group):
     for option in _options(group):
         # (the paper's late fusion and the point classifier take fixed views: not the default learned ones)
         fixed_views = group == "mvnet" and option in ("late_fusion", "point_classifier")
-        cfg = _compose([f"{group}={option}", *(["selector=circular"] if fixed_views else [])])
+        parts = group == "task" and option == "segmentation"  # (a dataset with part labels)
+        cfg = _compose([f"{group}={option}", *(["selector=circular"] if fixed_views else []),
+                        *(["dataset=synthetic_parts"] if parts else [])])
         if hasattr(getattr(cfg, group), "name"):
             assert option.startswith(getattr(cfg, group).name), (group, option)
 

@@ -44,7 +44,7 @@ class RetrievalEvalConfig:
     list_length: int = 1000
 
 
-EVAL_TASKS = ("classification", "retrieval")
+EVAL_TASKS = ("classification", "retrieval", "segmentation")
 ROBUSTNESS = ("none", "rotation", "occlusion")
 
 
@@ -52,7 +52,8 @@ ROBUSTNESS = ("none", "rotation", "occlusion")
 class EvalConfig:
     """``mvtn-eval ckpt=PATH``: rebuild the model from the checkpoint's config, evaluate ``split``.
 
-    ``task``: classification | retrieval; ``robustness``: none | rotation | occlusion (with
+    ``task``: classification | retrieval | segmentation (null: the checkpoint's own, classification
+    or segmentation; a checkpoint of the other task is refused); ``robustness``: none | rotation | occlusion (with
     classification); ``views``: also analyse the predicted views (per-class histograms, cameras
     around a shape, accuracy with per-class-averaged views). ``device``: auto (CUDA when available, else CPU), cpu, cuda[:N], or null for the checkpoint's; ``batch_size``: null keeps the checkpoint's. ``root``:
     override the dataset root stored in the checkpoint (data moved); ``paths.output_dir``: where
@@ -60,7 +61,7 @@ class EvalConfig:
 
     ckpt: Optional[str] = None
     split: str = "test"
-    task: str = "classification"
+    task: Optional[str] = None
     robustness: str = "none"
     views: bool = False
     device: Optional[str] = "auto"
@@ -76,13 +77,14 @@ class EvalConfig:
         if not self.ckpt:
             raise ValueError("ckpt: missing; pass ckpt=PATH to a best.pt / last.pt written by mvtn-train")
         one_of("split", self.split, ("train", "val", "test"))
-        one_of("task", self.task, EVAL_TASKS)
+        if self.task is not None:
+            one_of("task", self.task, EVAL_TASKS)
         one_of("robustness", self.robustness, ROBUSTNESS)
         if self.device is not None:
             check_device("device", self.device)
         if self.task == "retrieval" and self.split == "train":
             raise ValueError("split=train: retrieval queries the train split as its database; use split=test or val")
-        if self.task == "retrieval" and self.robustness != "none":
+        if self.task in ("retrieval", "segmentation") and self.robustness != "none":
             raise ValueError(f"robustness={self.robustness}: robustness is evaluated with task=classification")
         if self.batch_size is not None:
             at_least("batch_size", self.batch_size, 1)

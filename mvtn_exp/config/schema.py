@@ -7,7 +7,8 @@ naming the key and the allowed values. Angles are degrees; the world is Y-up.
 
 Group -> schema: dataset -> DatasetConfig (``data/config.py``), renderer -> RendererConfig, selector
 -> SelectorConfig, point_encoder -> PointEncoderConfig, backbone -> BackboneConfig, mvnet -> MVNetConfig
-(``OPTION_KINDS``: a subclass per option), task -> TaskConfig, optim -> OptimConfig, logger -> LoggerConfig,
+(C of classification), segnet -> SegNetConfig (C of segmentation) (``OPTION_KINDS``: a subclass per
+option), task -> TaskConfig, optim -> OptimConfig, logger -> LoggerConfig,
 paths -> PathsConfig; ``augment`` (AugmentConfig) has no group files: set ``augment.rotate=so3``.
 """
 from __future__ import annotations
@@ -24,6 +25,7 @@ from ..models import pretrained
 from ..models.multiview import MVCNNConfig, MVNetConfig
 from ..models.precision import check_precision
 from ..models.point_encoders import PointEncoderConfig, PointNetConfig
+from ..models.segnets import SegNetConfig, SmallFCNConfig
 from .options import OPTIONS
 from ..render.config import RendererConfig
 from ..selectors.config import SelectorConfig
@@ -132,7 +134,7 @@ class PathsConfig:
 
 # What a training run can return to an optimising sweeper (``TrainConfig.objectives``): validation
 # accuracy and the measured cost of ``engine/cost.py``; never a test metric.
-OBJECTIVES = ("best_val_acc", "cost.infer_ms_per_shape", "cost.train_seconds_per_shape", "cost.train_peak_mib",
+OBJECTIVES = ("best_val_acc", "best_val_instance_miou", "cost.infer_ms_per_shape", "cost.train_seconds_per_shape", "cost.train_peak_mib",
               "cost.infer_peak_mib", "cost.render_ms_per_shape", "cost.params_selector", "cost.params_mvnet",
               "cost.flops_selector_per_shape", "cost.flops_mvnet_per_shape")
 
@@ -183,6 +185,7 @@ class TrainConfig:
     point_encoder: PointEncoderConfig = field(default_factory=PointNetConfig)
     backbone: BackboneConfig = field(default_factory=SmallCNNConfig)
     mvnet: MVNetConfig = field(default_factory=MVCNNConfig)
+    segnet: SegNetConfig = field(default_factory=SmallFCNConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
@@ -203,6 +206,27 @@ class TrainConfig:
                              f"views of {self.image_size} px ({kind}) need {least} MiB at least; set "
                              f"renderer.memory_budget_mb >= {least} (or null: automatic)")
 
+    @property
+    def c(self):
+        """The option of C: ``segnet`` under ``task=segmentation``, else ``mvnet``."""
+        return self.segnet if self.task.name == "segmentation" else self.mvnet
+
+    def _check_task(self) -> None:
+        """``task=segmentation`` needs part labels, C of ``segnet`` and a G that trains on C's loss
+        alone: anything else is one line."""
+        if self.task.name != "segmentation":
+            return
+        if not self.dataset.has_parts:
+            having = sorted(n for n, c in OPTIONS["dataset"].items() if c.has_parts)
+            raise ValueError(f"task=segmentation: dataset={self.dataset.name} has no part labels; the datasets "
+                             f"that have them: {', '.join(having)}")
+        if self.mvnet.name != MVCNNConfig.name:
+            raise ValueError(f"mvnet={self.mvnet.name} with task=segmentation: C is segnet={self.segnet.name} there "
+                             f"(mvnet is the multi-view network of classification; leave it unset)")
+        problem = self.selector.segmentation_problem()
+        if problem:
+            raise ValueError(f"selector={self.selector.name} with task=segmentation: {problem}")
+
     def validate(self) -> "TrainConfig":
         for key in ("views", "image_size", "epochs", "batch_size"):
             at_least(key, getattr(self, key), 1)
@@ -218,10 +242,11 @@ class TrainConfig:
                 raise ValueError(f"objectives: {name!r} reads the test split; a search chooses on validation "
                                  f"(one of {', '.join(OBJECTIVES)})")
             one_of("objectives", name, OBJECTIVES)
-        for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.task,
+        for part in (self.dataset, self.selector, self.point_encoder, self.backbone, self.mvnet, self.segnet, self.task,
                      self.optim, self.augment, self.logger):
             part.validate()
-        for part in (self.selector, self.point_encoder, self.backbone, self.mvnet):
+        self._check_task()
+        for part in (self.selector, self.point_encoder, self.backbone, self.c):
             part.check(self)  # each option against the rest of the config (e.g. ViewGCN needs M >= 2)
         if self.renderer.image_size != self.image_size:
             raise ValueError(f"renderer.image_size={self.renderer.image_size} differs from image_size={self.image_size}: "
@@ -233,10 +258,10 @@ class TrainConfig:
 
 GROUPS = {"dataset": DatasetConfig, "renderer": RendererConfig, "selector": SelectorConfig,
           "point_encoder": PointEncoderConfig, "backbone": BackboneConfig, "mvnet": MVNetConfig,
-          "task": TaskConfig, "optim": OptimConfig, "logger": LoggerConfig, "paths": PathsConfig}
+          "segnet": SegNetConfig, "task": TaskConfig, "optim": OptimConfig, "logger": LoggerConfig, "paths": PathsConfig}
 
 
-OPTION_KINDS = ("selector", "point_encoder", "backbone", "mvnet", "dataset")  # one schema per option: options.py
+OPTION_KINDS = ("selector", "point_encoder", "backbone", "mvnet", "segnet", "dataset")  # one schema per option: options.py
 
 
 def _option_schemas(data: dict, cfg) -> dict:

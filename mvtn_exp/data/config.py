@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import ClassVar, Optional
 
 from torch.utils.data import Dataset
 
@@ -51,6 +51,7 @@ class DatasetConfig(OptionConfig):
     num_workers: Optional[int] = None
 
     kind = "dataset"
+    has_parts: ClassVar[bool] = False  # items carry part_labels (task=segmentation)
 
     def validate(self) -> "DatasetConfig":
         super().validate()
@@ -141,6 +142,7 @@ class SyntheticPartsConfig(SyntheticConfig):
     ``part_labels`` (and ``face_parts`` for meshes); the dataset has ``part_names`` and ``parts_of``."""
 
     name: str = "synthetic_parts"
+    has_parts: ClassVar[bool] = True
     root: str = "${paths.cache_dir}/synthetic_parts"
     num_per_class: list[int] = field(default_factory=lambda: [16, 8, 16])
 
@@ -274,6 +276,7 @@ class ShapeNetPartsConfig(DatasetConfig):
     the run instead of being skipped and counted (a part outside its category always stops it)."""
 
     name: str = "shapenet_parts"
+    has_parts: ClassVar[bool] = True
     root: str = "${paths.data_dir}/shapenetcore_partanno_segmentation_benchmark_v0_normal"
     shape: str = "points"
     num_points: int = 2048

@@ -240,6 +240,8 @@ class ShapeNetParts(Dataset):
         self.root, self.split, self.strict = root, split, bool(strict)
         self.num_points, self.seed = int(num_points), int(seed)
         self.classes, self.parts_of = list(CATEGORIES), {c: list(p) for c, p in PARTS_OF.items()}
+        # the release names no parts: "<category>/<k>", k-th of the category's parts (global ids in order)
+        self.part_names = [f"{CATEGORIES[c]}/{k}" for c in sorted(PARTS_OF) for k in range(len(PARTS_OF[c]))]
         synsets = read_categories(category_path)
         entries = read_split(split_path, synsets, category_path)
         skipped, files = [], []

@@ -52,11 +52,11 @@ class _Epoch:
         self.loss, self.correct, self.seen, self.skipped, self.clipped = 0.0, 0, 0, 0, 0
         self.g_norm_sum, self.c_norm_sum, self.steps = 0.0, 0.0, 0
 
-    def add(self, loss, logits, labels, g_norm: float, c_norm: float) -> None:
-        """One finished step: C's mean ``loss`` over ``labels [B']`` and the gradient norms."""
-        n = len(labels)
+    def add(self, loss, right: float, n: int, g_norm: float, c_norm: float) -> None:
+        """One finished step of ``n`` shapes: C's mean ``loss``, the share ``right`` (the task
+        head's ``hits``: shapes classified, part pixels labelled) and the gradient norms."""
         self.loss += float(loss.detach()) * n
-        self.correct += int((logits.detach().argmax(1) == labels).sum())
+        self.correct += right * n
         self.seen += n
         self.steps += 1
         self.g_norm_sum += g_norm
@@ -68,11 +68,20 @@ class _Epoch:
                 "grad_norm_selector": self.g_norm_sum / s, "grad_norm_mvnet": self.c_norm_sum / s}
 
 
+def share_right(loss_fn, logits, labels) -> float:
+    """The task head's ``hits`` (``tasks/heads.py``); a plain loss function: classification's."""
+    hits = getattr(loss_fn, "hits", None)
+    if hits is not None:
+        return hits(logits, labels)
+    return float((logits.detach().argmax(1) == labels).float().mean()) if len(labels) else 0.0
+
+
 def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss_fn, timer: StepTimer,
                     logger: RunLogger, step: int, g_training, scaler=None, ema=None,
                     world: distributed.World = distributed.World()) -> tuple[dict, int]:
-    """One pass over ``loader``; returns (epoch sums, global step after it). ``g_training``: how G
-    trains (``selectors/training.py``: its ``train_step`` is the forward and the objective);
+    """One pass over ``loader``; returns (epoch sums, global step after it). ``loss_fn``: the task
+    head (``tasks/heads.py``: C's loss, its targets and hits) or a plain loss of classification;
+    ``g_training``: how G trains (``selectors/training.py``: its ``train_step`` is the forward and the objective);
     ``scaler``: fp16's loss scaler (``models/precision.py``); ``ema``: a ``ModelEMA`` updated after
     every step."""
     model.train()
@@ -116,7 +125,7 @@ def train_one_epoch(model: MVTN, loader, opt, cfg: TrainConfig, epoch: int, loss
             with timer.stage("optimizer"):
                 ema.update(model, step)
         timer.step_done()
-        acc.add(loss, out.logits, out.labels, g_norm, c_norm)
+        acc.add(loss, share_right(loss_fn, out.logits, out.labels), len(out.labels), g_norm, c_norm)
         step += 1
         if step % cfg.logger.log_every == 0:
             logger.scalars({"train/loss": float(loss.detach()), "grad_norm/selector": g_norm,

@@ -40,6 +40,11 @@ class RunLogger:
         grid = view_grid(imgs.reshape(-1, *imgs.shape[2:]), cols=imgs.shape[1])  # [H', W', 3] uint8
         self.writer.add_image(tag, np.ascontiguousarray(grid), step, dataformats="HWC")
 
+    def image(self, tag: str, image, step: int) -> None:
+        """One uint8 ``[H, W, 3]`` picture (with ``logger.images``)."""
+        if self.writer is not None and self.cfg.images:
+            self.writer.add_image(tag, np.ascontiguousarray(image), step, dataformats="HWC")
+
     def histogram(self, tag: str, values: torch.Tensor, step: int) -> None:
         if self.writer is not None and values.numel() > 0:
             self.writer.add_histogram(tag, values.detach().float().cpu().reshape(-1), step)

@@ -39,6 +39,7 @@ class TrainState:
     step: int = 0
     train_seconds: float = 0.0
     train_shapes: int = 0
+    head: object = None  # the task head (tasks/heads.py); best_acc is its validation score (accuracy, instance mIoU)
 
     def payload(self, epoch: int, rngs: list | None = None) -> dict:
         """The checkpoint after 0-based ``epoch``; ``rngs``: every process's RNG state in rank order

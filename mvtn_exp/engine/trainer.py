@@ -25,7 +25,7 @@ from ..model import MVTN, build_mvtn
 from ..models import sync_bn
 from ..models.precision import grad_scaler
 from ..runtime import checkpoint, distributed, seeding
-from ..tasks import classification
+from ..tasks.heads import build_head
 from . import cost, loaders
 from . import run_dir as run_dir_state
 from .ema import ModelEMA
@@ -51,25 +51,19 @@ def make_datasets(cfg: TrainConfig) -> dict:
     return datasets
 
 
-def evaluate_split(model, dataset, cfg: TrainConfig, num_classes: int, desc: str,
+def evaluate_split(model, dataset, cfg: TrainConfig, head, desc: str,
                    world: distributed.World = distributed.World()) -> dict:
-    """``classification.evaluate`` on ``dataset``; with several processes each classifies its own
-    contiguous share (every shape once) and the results are gathered: the same dict, over the whole
-    split, in the dataset's order, on every rank."""
+    """``head.evaluate`` on ``dataset`` (``tasks/heads.py``); with several processes each evaluates
+    its own contiguous share (every shape once) and the results are merged: the same dict, over
+    the whole split, in the dataset's order, on every rank."""
     if not world.enabled:
-        return classification.evaluate(model, eval_loader(cfg, dataset), num_classes, desc=desc,
-                                       progress=cfg.logger.progress)
+        return head.evaluate(model, eval_loader(cfg, dataset), desc=desc, progress=cfg.logger.progress)
     mine = loaders.shard_of(dataset, world)  # the same Subset every pass: its loader's workers are kept
-    res = classification.evaluate(model, eval_loader(cfg, mine), num_classes, desc=desc,
-                                  progress=cfg.logger.progress and world.main)
-    parts = distributed.gather({k: res[k] for k in ("confusion", "loss", "n", "azim", "elev", "dist", "labels", "pred")},
-                               world)
-    conf = sum(torch.tensor(p["confusion"]) for p in parts)
-    out = classification.summarize(conf)
-    out.update(loss=sum(p["loss"] * p["n"] for p in parts) / max(out["n"], 1), confusion=conf.tolist(),
-               **{k: torch.cat([p[k] for p in parts]) for k in ("azim", "elev", "dist", "labels", "pred")},
-               images=res["images"] if world.main else None)
-    return out
+    res = head.evaluate(model, eval_loader(cfg, mine), desc=desc, progress=cfg.logger.progress and world.main)
+    parts = distributed.gather({k: res[k] for k in head.GATHERED}, world)
+    if world.main:
+        parts[0].update(images=res.get("images"), pictures=res.get("pictures"))
+    return head.merge(parts)
 
 
 def lr_factor(cfg: TrainConfig, epoch: int) -> float:
@@ -184,7 +178,7 @@ def test_best(state: TrainState, cfg: TrainConfig, run_dir: Path, datasets: dict
     state.model.load_state_dict(best["model"])
     with cost.peak_memory(device) as infer_memory:
         t_test = time.perf_counter()
-        test = evaluate_split(state.model, datasets["test"], cfg, len(state.classes), "test", state.world)
+        test = evaluate_split(state.model, datasets["test"], cfg, state.head, "test", state.world)
         infer_seconds = time.perf_counter() - t_test
     first = next(iter(eval_loader(cfg, datasets["test"])), None)
     costs = cost.run_cost(state.model, cfg, infer_seconds=infer_seconds, infer_shapes=test["n"],
@@ -195,14 +189,14 @@ def test_best(state: TrainState, cfg: TrainConfig, run_dir: Path, datasets: dict
     return best, test, costs
 
 
-def validate(model, ema, dataset, cfg: TrainConfig, num_classes: int, world) -> tuple[dict, dict | None]:
+def validate(model, ema, dataset, cfg: TrainConfig, head, world) -> tuple[dict, dict | None]:
     """The epoch's validation of the raw weights and (with ``optim.ema_decay``) of their average,
     with rank 0's BatchNorm statistics on every rank first."""
     distributed.broadcast_buffers(model, world)
     if ema is not None:
         distributed.broadcast_buffers(ema.model, world)
-    val = evaluate_split(model, dataset, cfg, num_classes, "val", world)
-    val_ema = evaluate_split(ema.model, dataset, cfg, num_classes, "val (average)", world) if ema is not None else None
+    val = evaluate_split(model, dataset, cfg, head, "val", world)
+    val_ema = evaluate_split(ema.model, dataset, cfg, head, "val (average)", world) if ema is not None else None
     return val, val_ema
 
 
@@ -237,18 +231,18 @@ def _train(cfg: TrainConfig, run_dir: Path, build_model) -> dict:
             fit(state, cfg, run_dir, datasets, g_training, logger, timer)
         best, test, costs = test_best(state, cfg, run_dir, datasets, device, timer, train_memory)
         logger.scalars({"test/acc": test["acc"], "test/mean_class_acc": test["mean_class_acc"],
+                        **{f"test/{k}": v for k, v in state.head.headline(test).items()},
                         **{f"cost/{k}": v for k, v in costs.items() if isinstance(v, (int, float))}}, state.step)
     finally:
         logger.close()
         loaders.release(*datasets.values())
     metrics = run_metrics(cfg, cfg_dict, state.model, datasets, test, costs, state.history, timer, origin, world,
                           best_acc=state.best_acc, best_epoch=state.best_epoch, step=state.step, skipped=state.skipped,
-                          best_weights="average" if best.get("ema_selected") else "raw")
+                          best_weights="average" if best.get("ema_selected") else "raw", head=state.head)
     if world.main:
         view_figures(datasets["test"], test, run_dir)
-        write_results(run_dir, metrics)
-        say(run_dir, f"test accuracy {test['acc']:.4f} (mean per-class {test['mean_class_acc']:.4f}, best val "
-                     f"{state.best_acc:.4f} at epoch {state.best_epoch + 1})")
+        write_results(run_dir, metrics, test)
+        say(run_dir, state.head.summary_line(test, state.best_acc, state.best_epoch + 1))
     return metrics
 
 
@@ -269,14 +263,16 @@ def build_state(cfg: TrainConfig, run_dir: Path, build_model, datasets: dict, de
     ``TrainState``, resumed from ``resume`` when given; returns it and G's training."""
     world = distributed.from_env()
     classes = list(datasets["train"].classes)
-    model = (build_model or build_mvtn)(cfg, num_classes=len(classes)).to(device)
+    head = build_head(cfg.task, datasets["train"])  # the task's loss, targets and evaluation (tasks/heads.py)
+    model = (build_model or build_mvtn)(cfg, num_classes=head.num_outputs).to(device)
     if world.enabled and cfg.sync_bn:  # BatchNorm over the global batch (models/sync_bn.py)
         sync_bn.convert(model)
     g_training = cfg.selector.training()(cfg)  # how G trains (selectors/training.py)
     g_training.start(model, cfg_dict, resumed=resume is not None)
     opt, sched = make_optimizer(cfg, model, g_training)
     ema = ModelEMA(model, cfg.optim.ema_decay) if cfg.optim.ema_decay is not None else None
-    state = TrainState(model, opt, sched, grad_scaler(cfg.precision, device), ema, world, cfg_dict, classes, origin)
+    state = TrainState(model, opt, sched, grad_scaler(cfg.precision, device), ema, world, cfg_dict, classes, origin,
+                       head=head)
     if world.enabled:  # from here on each process draws its own stream (augmentation, light, colour, points)
         seeding.seed_everything(seeding.for_rank(cfg.seed, world.rank, world.size))
     if resume is not None:
@@ -330,7 +326,7 @@ def run_epoch(state: TrainState, cfg: TrainConfig, run_dir: Path, epoch: int, da
     t0, world, model = time.perf_counter(), state.world, state.model
     lrs = {f"lr_{g['name']}": g["lr"] for g in state.opt.param_groups}
     batches = lambda: train_loader(cfg, datasets["train"], epoch, world)  # noqa: E731
-    tr, state.step = train_one_epoch(model, batches(), state.opt, cfg, epoch, classification.loss_fn(cfg.task), timer,
+    tr, state.step = train_one_epoch(model, batches(), state.opt, cfg, epoch, state.head, timer,
                                      logger, state.step, g_training, scaler=state.scaler, ema=state.ema, world=world)
     state.train_seconds += time.perf_counter() - t0
     if world.enabled:  # the epoch's sums over every rank's share
@@ -340,17 +336,20 @@ def run_epoch(state: TrainState, cfg: TrainConfig, run_dir: Path, epoch: int, da
     for line in g_training.end_epoch(model, epoch):
         say(run_dir, line)
     train_bn = g_training.before_validation(model, batches)
-    val, val_ema = validate(model, state.ema, datasets["val"], cfg, len(state.classes), world)
+    val, val_ema = validate(model, state.ema, datasets["val"], cfg, state.head, world)
     state.sched.step()
     seconds = time.perf_counter() - t0
     offsets = view_report(model, val["azim"], val["elev"])
     report = dataset_view_report(datasets["val"], val)
     headline = view_headline(datasets["val"], report)
-    detail = {f"val_{k}": v for k, v in report.items()}
+    task_line = state.head.headline(val)
+    detail = {f"val_{k.lower()}": v for k, v in {**task_line, **report}.items()}
     state.history.append(epoch_record(epoch, tr, val, val_ema, offsets, detail, lrs, seconds, g_training.history(model)))
-    log_epoch(logger, state.step, tr, val, offsets, headline)
-    use_ema = val_ema is not None and val_ema["acc"] > val["acc"]  # the average is the better model now
-    improved = state.improve(val_ema["acc"] if use_ema else val["acc"], epoch)
+    log_epoch(logger, state.step, tr, val, offsets, headline, task_line)
+    score = state.head.score  # what model selection maximises (accuracy; instance mIoU)
+    use_ema = val_ema is not None and val_ema[score] > val[score]  # the average is the better model now
+    improved = state.improve(val_ema[score] if use_ema else val[score], epoch)
     state.save(run_dir, epoch, improved, use_ema, train_bn)
     g_training.after_validation(model, train_bn)
-    say(run_dir, epoch_line(epoch, cfg, tr, val, val_ema, improved, use_ema, offsets, headline, seconds))
+    say(run_dir, epoch_line(epoch, cfg, tr, val, val_ema, improved, use_ema, offsets, {**task_line, **headline},
+                            seconds))

@@ -14,6 +14,7 @@ from ..render import accel
 from ..config.schema import TrainConfig, resolve_device
 from ..config.eval_schema import EvalConfig
 from ..tasks import classification
+from ..tasks.heads import build_head
 from ..runtime import checkpoint
 from . import modes as eval_modes
 from ..engine.provenance import provenance
@@ -39,6 +40,48 @@ def load_model(cfg: TrainConfig, state: dict, num_classes: int, path, device):
         raise checkpoint.CheckpointMismatch(f"checkpoint {str(path)!r}: weights do not fit the model its config "
                                             f"builds ({detail})") from exc
     return model
+
+
+def task_of(ecfg: EvalConfig, cfg: TrainConfig) -> str:
+    """The task to evaluate: ``task`` as asked, or the checkpoint's; a segmentation checkpoint
+    under another task, or a classifier under segmentation, is refused in one line."""
+    trained, asked = cfg.task.name, ecfg.task
+    if asked is None:
+        return trained
+    if (trained == "segmentation") != (asked == "segmentation"):
+        raise checkpoint.CheckpointMismatch(
+            f"checkpoint {ecfg.ckpt!r} was trained with task={trained}: it cannot be evaluated with task={asked} "
+            f"(leave task unset to evaluate its own task)")
+    return asked
+
+
+def evaluate_segmentation(ecfg: EvalConfig, cfg: TrainConfig, state: dict, dataset, device, run_dir: Path) -> dict:
+    """A part segmentation checkpoint on ``ecfg.split``: instance and class mIoU, per category,
+    coverage, the part confusion and the first shape's pictures (``results.md``, ``metrics.json``,
+    ``parts_views.png``, ``parts_points.png``)."""
+    if ecfg.views:
+        raise ValueError("views=true: the view analysis is made for classification; leave it unset for a "
+                         "segmentation checkpoint")
+    head = build_head(cfg.task, dataset)
+    model = load_model(cfg, state, head.num_outputs, ecfg.ckpt, device)
+    t0 = time.perf_counter()
+    res = head.evaluate(model, eval_loader(cfg, dataset), desc=ecfg.split, progress=ecfg.progress)
+    metrics = {"test_acc": res["acc"], "test_mean_class_acc": res["mean_class_acc"], "test_loss": res["loss"],
+               "test_per_class_acc": dict(zip(head.names, res["per_class_acc"])), **head.metrics(res),
+               "confusion_matrix": res["confusion"], "classes": list(dataset.classes), "test_size": res["n"],
+               "split": ecfg.split, "ckpt": str(ecfg.ckpt), "ckpt_epoch": int(state.get("epoch", 0)),
+               **{f"test_{k}": v for k, v in view_report(model, res["azim"], res["elev"]).items()},
+               "seconds": {"segmentation": time.perf_counter() - t0}, "config": config_dict(cfg),
+               "provenance": provenance(cfg.device), "ckpt_provenance": state.get("provenance")}
+    rows = "".join(f"| {name} | {v['miou']:.4f} | {v['shapes']} |\n" for name, v in res["per_category"].items())
+    table = (f"## Part segmentation ({ecfg.split}, fuse={cfg.task.fuse})\n\n| instance mIoU | class mIoU | point "
+             f"accuracy | coverage | shapes |\n|---|---|---|---|---|\n| {res['instance_miou']:.4f} | "
+             f"{res['class_miou']:.4f} | {res['acc']:.4f} | {res['coverage']:.4f} | {res['n']} |\n\n"
+             f"| category | mIoU | shapes |\n|---|---|---|\n{rows}")
+    (run_dir / "results.md").write_text(table)
+    write_results(run_dir, metrics, res)
+    print(table)
+    return metrics
 
 
 def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
@@ -67,6 +110,8 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
     if state.get("classes") is not None and list(state["classes"]) != classes:
         raise checkpoint.CheckpointMismatch(f"checkpoint {ecfg.ckpt!r} was trained on classes {state['classes']} "
                                             f"but dataset {cfg.dataset.name} at {cfg.dataset.root} has {classes}")
+    if task_of(ecfg, cfg) == "segmentation":
+        return evaluate_segmentation(ecfg, cfg, state, dataset, device, run_dir)
     model = load_model(cfg, state, len(classes), ecfg.ckpt, device)
     loader = eval_loader(cfg, dataset)
     t0 = time.perf_counter()
@@ -81,7 +126,7 @@ def evaluate_checkpoint(ecfg: EvalConfig, run_dir) -> dict:
                "ckpt_provenance": state.get("provenance")}
     tables = [f"## Classification ({ecfg.split})\n\n| accuracy | mean per-class | n |\n|---|---|---|\n"
               f"| {res['acc']:.4f} | {res['mean_class_acc']:.4f} | {res['n']} |"]
-    mode = ecfg.robustness if ecfg.robustness != "none" else ecfg.task
+    mode = ecfg.robustness if ecfg.robustness != "none" else (ecfg.task or "classification")
     if mode != "classification":
         t0 = time.perf_counter()
         if mode == "rotation":

@@ -24,7 +24,7 @@ from torch.nn import functional as F
 
 from ..config.checks import at_least
 from ..config.options import OPTIONS, OptionConfig
-from .backbones import Bottleneck, ResNet, _init_weights, build_backbone
+from .backbones import IMAGENET_MEAN, IMAGENET_STD, Bottleneck, ResNet, _init_weights, build_backbone
 
 
 def _conv_bn_relu(cin: int, cout: int, k: int = 3, dilation: int = 1) -> nn.Sequential:
@@ -126,6 +126,45 @@ class SmallFCN(nn.Module):
         return self.classifier(y)
 
 
+class ViewSegmenter(nn.Module):
+    """C of part segmentation: one 2D segmentation network shared over the views.
+
+    ``forward(images [B, M, 3, H, W], views=None) -> (logits [B, M, K, H, W], features [B, 0])``
+    (no shape descriptor); ``training_loss(logits, targets, loss_fn)``: ``loss_fn`` on the logits,
+    plus ``aux_weight`` times it on the auxiliary head's (DeepLabV3 with ``aux``)."""
+
+    needs_views = False
+
+    def __init__(self, net: nn.Module, aux_weight: float = 0.0) -> None:
+        super().__init__()
+        self.net, self.aux_weight = net, aux_weight
+        self.register_buffer("input_mean", None, persistent=False)
+        self.register_buffer("input_std", None, persistent=False)
+
+    def normalize_input(self, mean, std) -> "ViewSegmenter":
+        """Scale every view ``(x - mean) / std`` per channel first (ImageNet's for pretrained weights)."""
+        self.register_buffer("input_mean", torch.tensor(mean, dtype=torch.float32).view(1, -1, 1, 1), persistent=False)
+        self.register_buffer("input_std", torch.tensor(std, dtype=torch.float32).view(1, -1, 1, 1), persistent=False)
+        return self
+
+    def forward(self, images: Tensor, views=None) -> tuple[Tensor, Tensor]:
+        if images.dim() != 5 or images.shape[1] < 1:
+            raise ValueError(f"ViewSegmenter expects images [B, M, 3, H, W] with M >= 1, got {list(images.shape)}")
+        B, M = images.shape[:2]
+        x = images.reshape(B * M, *images.shape[2:])
+        if self.input_mean is not None:
+            x = (x - self.input_mean.to(x.dtype)) / self.input_std.to(x.dtype)
+        logits = self.net(x)
+        return logits.reshape(B, M, *logits.shape[1:]), logits.new_zeros(B, 0)
+
+    def training_loss(self, logits: Tensor, targets, loss_fn) -> Tensor:
+        loss = loss_fn(logits, targets)
+        aux = getattr(self.net, "aux_logits", None)
+        if aux is not None and self.aux_weight:
+            loss = loss + self.aux_weight * loss_fn(aux.reshape(logits.shape), targets)
+        return loss
+
+
 # ----------------------------------------------------------------------------- config options (segnet=NAME)
 register = OPTIONS["segnet"].register
 
@@ -140,6 +179,16 @@ class SegNetConfig(OptionConfig):
     def build(self, num_classes: int, backbone: str = "resnet50", weights: Optional[str] = None) -> nn.Module:
         raise NotImplementedError(f"{type(self).__name__}.build")
 
+    def aux_loss_weight(self) -> float:
+        """The weight of an auxiliary head's loss (0: none)."""
+        return 0.0
+
+    def build_c(self, num_classes: int, backbone: str = "resnet50", weights: Optional[str] = None,
+                input_norm: str = "none") -> ViewSegmenter:
+        """C: the network over every view (``input_norm="imagenet"``: ImageNet's mean and std first)."""
+        c = ViewSegmenter(self.build(num_classes, backbone, weights), self.aux_loss_weight())
+        return c.normalize_input(IMAGENET_MEAN, IMAGENET_STD) if input_norm == "imagenet" else c
+
 
 @register("deeplabv3")
 @dataclass
@@ -153,6 +202,9 @@ class DeepLabV3Config(SegNetConfig):
     aux_weight: float = 0.4
 
     uses_backbone: ClassVar[bool] = True
+
+    def aux_loss_weight(self) -> float:
+        return self.aux_weight if self.aux else 0.0
 
     def build(self, num_classes: int, backbone: str = "resnet50", weights: Optional[str] = None) -> nn.Module:
         return DeepLabV3(build_backbone(backbone, 1000, weights=weights), num_classes, aux=self.aux)

@@ -106,6 +106,17 @@ class SelectorConfig(OptionConfig):
         return next((p for s in self.enabled_strategies() if (p := s.multi_process_problem(self, views, processes))),
                     None)
 
+    def segmentation_problem(self) -> Optional[str]:
+        """One line when this selector cannot serve ``task=segmentation`` (its training strategies
+        score views by a classification loss), else None."""
+        names = [s.name for s in self.enabled_strategies()]
+        if names:
+            return (f"its training strategies ({', '.join(names)}) score views by a classification loss; turn them "
+                    f"off (e.g. use the plain option's defaults)")
+        if getattr(self, "loss", "task") != "task":
+            return f"selector.loss={self.loss} is a classification loss; use selector.loss=task"
+        return None
+
     def training(self):
         from .training import SelectorTraining
 

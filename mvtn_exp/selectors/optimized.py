@@ -169,6 +169,12 @@ class OptimizedConfig(LayoutConfig):
             at_least("selector.step_size", self.step_size, 0.0, strict=True)
         return self
 
+    def segmentation_problem(self) -> Optional[str]:
+        if self.steps == 0:
+            return None
+        return (f"its steps optimise objective={self.objective} on a classifier's logits; use selector.steps=0 "
+                f"(the base layout) or a learned selector")
+
     @property
     def step(self) -> float:
         """``step_size``, or the paper's for ``objective`` when null."""

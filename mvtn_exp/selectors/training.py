@@ -50,6 +50,13 @@ class Step:
     objective: Tensor
 
 
+def task_targets(loss_fn, model, batch: dict, views):
+    """What C's output is compared with for ``views``: the task head's ``targets`` (e.g. the
+    views' label images of segmentation), or the batch's class labels ``[B]``."""
+    targets = getattr(loss_fn, "targets", None)
+    return targets(model, batch, views) if targets is not None else batch["labels"].to(model.device)
+
+
 class SelectorTraining:
     """Fixed views: every step renders the selector's views; there is no G to train.
 
@@ -84,14 +91,15 @@ class SelectorTraining:
         return model.select(batch)
 
     def forward(self, ctx: StepContext) -> None:
-        """R then C on ``ctx.seen``: fills ``ctx.labels``, ``images``, ``logits`` and C's ``loss``.
+        """R then C on ``ctx.seen``: fills ``ctx.labels`` (``task_targets``), ``images``, ``logits``
+        and C's ``loss``.
         With S = ``ctx.sets`` > 1 each shape is S rows for C (its views split into S sets); R is
         differentiated unless a strategy says otherwise."""
         model, batch, S = ctx.model, ctx.batch, ctx.sets
-        labels = batch["labels"].to(model.device)
-        ctx.labels = labels if S == 1 else labels.repeat_interleave(S)  # [B * S]
         grad = all(s.differentiates_render(ctx) for s in self.strategies)
         with ctx.timer.stage("render"), torch.set_grad_enabled(grad):
+            labels = task_targets(ctx.loss_fn, model, batch, ctx.seen)
+            ctx.labels = labels if S == 1 else labels.repeat_interleave(S)  # [B * S]
             images = model.render(batch, *ctx.seen)
             ctx.images = images if S == 1 else split_images(images, S)  # [B * S, M', 3, h, w]
         with ctx.timer.stage("backbone"):

@@ -83,3 +83,53 @@ def evaluate(model, loader, num_classes: int, desc: str = "eval", progress: bool
                   pred=torch.cat(preds) if preds else torch.zeros(0, dtype=torch.long),
                   images=first_images)
     return result
+
+
+class Classification:
+    """The classification head (``tasks/heads.py``): C's logits ``[B, K]`` against the shapes'
+    class labels ``[B]``, scored by accuracy."""
+
+    score = "acc"  # what model selection maximises on the validation split
+
+    def __init__(self, cfg: TaskConfig, dataset) -> None:
+        self.cfg = cfg
+        self.names = list(dataset.classes)
+        self.num_outputs = len(self.names)
+        self.loss = loss_fn(cfg)
+
+    def targets(self, model, batch: dict, views) -> Tensor:
+        """The batch's class labels ``[B]`` (``views`` unused)."""
+        return batch["labels"].to(model.device)
+
+    def __call__(self, logits: Tensor, labels: Tensor) -> Tensor:
+        return self.loss(logits, labels)
+
+    def hits(self, logits: Tensor, labels: Tensor) -> float:
+        """The share of shapes whose argmax is their class."""
+        return float((logits.detach().argmax(1) == labels).float().mean()) if len(labels) else 0.0
+
+    def evaluate(self, model, loader, desc: str = "eval", progress: bool = True, transform=None) -> dict:
+        return evaluate(model, loader, self.num_outputs, desc=desc, progress=progress, transform=transform)
+
+    GATHERED = ("confusion", "loss", "n", "azim", "elev", "dist", "labels", "pred")
+
+    def merge(self, parts: list[dict]) -> dict:
+        """The result over shards (``GATHERED`` of each, in order), as ``evaluate`` gives it (the
+        first shard's images)."""
+        conf = sum(torch.tensor(p["confusion"]) for p in parts)
+        out = summarize(conf)
+        out.update(loss=sum(p["loss"] * p["n"] for p in parts) / max(out["n"], 1), confusion=conf.tolist(),
+                   **{k: torch.cat([p[k] for p in parts]) for k in ("azim", "elev", "dist", "labels", "pred")},
+                   images=parts[0].get("images"))
+        return out
+
+    def headline(self, res: dict) -> dict:
+        return {}
+
+    def metrics(self, res: dict) -> dict:
+        return {}
+
+    def summary_line(self, res: dict, best: float, best_epoch: int) -> str:
+        """The run's last line: the test result of ``best.pt``, chosen at 1-based ``best_epoch``."""
+        return (f"test accuracy {res['acc']:.4f} (mean per-class {res['mean_class_acc']:.4f}, best val {best:.4f} at "
+                f"epoch {best_epoch})")
