@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 
 from mvtn_exp.config.options import OPTIONS, load
-from mvtn_exp.models.backbones import SmallCNN, build_backbone, resnet18, resnet34, resnet50, small_cnn
+from mvtn_exp.models.backbones import SmallCNN, build_backbone, resnet18, resnet34, resnet50, resnet101, small_cnn
 
 load("backbone")
 
@@ -15,7 +15,7 @@ def n_params(model):
 
 
 @pytest.mark.parametrize("ctor,expected", [(resnet18, 11_689_512), (resnet34, 21_797_672),
-                                           (resnet50, 25_557_032)])
+                                           (resnet50, 25_557_032), (resnet101, 44_549_160)])
 def test_param_count_matches_torchvision(ctor, expected):
     assert n_params(ctor(num_classes=1000)) == expected
 
@@ -191,9 +191,10 @@ def test_small_cnn_sizes():
 
 def test_unknown_name_lists_allowed():
     with pytest.raises(ValueError) as ei:
-        build_backbone("resnet101", num_classes=10)
+        build_backbone("resnet152", num_classes=10)
     msg = str(ei.value)
-    assert "resnet101" in msg
+    assert "resnet152" in msg
     for name in ("resnet18", "resnet34", "resnet50", "small_cnn"):
         assert name in msg
-    assert set(OPTIONS["backbone"]) == {"resnet18", "resnet34", "resnet50", "small_cnn", "vit_tiny", "vit_small", "vit_base"}
+    assert set(OPTIONS["backbone"]) == {"resnet18", "resnet34", "resnet50", "resnet101", "small_cnn", "vit_tiny", "vit_small",
+                                       "vit_base"}

@@ -62,6 +62,7 @@ PAPER = {
     "paper_light": ("modelnet40", "mvtn_circular", "mvcnn", 12, 100, 3e-4),  # L1166
     "paper_mvtn_variants": ("modelnet40", "mvtn_direct", "mvcnn", 12, 100, 3e-4),
     "paper_point_classifiers": ("modelnet40", "circular", "point_classifier", 1, 100, 1e-3),
+    "paper_part_segmentation": ("shapenet_parts", "mvtn_spherical", "mvcnn", 12, 100, 3e-4),  # (C: segnet=deeplabv3)
 }
 # files the user gives on the command line (placeholders in the experiment file)
 REQUIRED = {"paper_view_transfer": ["selector.from_ckpt=run/best.pt"]}
@@ -82,6 +83,10 @@ def test_every_experiment_composes(name):
             assert cfg.selector.antipodes and cfg.selector.race_mode == "pooled"
     elif name == "tradeoff_synthetic_views":  # the study's view-dependent half: the learned recipe, swept
         assert cfg.dataset.name == "synthetic_views" and cfg.selector.name == "poi" and cfg.epochs == 20
+    elif name.startswith("synthetic_parts"):  # the embedded part segmentation: same setup, fixed or learned views
+        assert (cfg.dataset.name, cfg.task.name, cfg.segnet.name, cfg.views, cfg.epochs) == \
+            ("synthetic_parts", "segmentation", "fcn_small", 4, 60)
+        assert cfg.selector.name == ("mvtn_spherical" if "learned" in name else "spherical")
     elif name.startswith(("synthetic", "tradeoff")):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups: dataset, G, C, M, epochs, C's learning rate

@@ -186,7 +186,8 @@ def test_noisy_selector_bad_settings():
 # --------------------------------------------------------------------------- every registered component
 
 @pytest.mark.parametrize("mvnet", IMAGE_NETS)
-@pytest.mark.parametrize("backbone", sorted(OPTIONS["backbone"]))
+@pytest.mark.parametrize("backbone", [pytest.param(b, marks=pytest.mark.slow) if b == "resnet101" else b
+                                      for b in sorted(OPTIONS["backbone"])])  # (ResNet-101: as ResNet-50, deeper)
 @pytest.mark.parametrize("M", [1, 12])
 def test_every_multiview_network_with_every_backbone(mvnet, backbone, M):
     """B = 2: output shapes, finite values, gradients to the images and to every used parameter."""

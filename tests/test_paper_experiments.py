@@ -33,6 +33,7 @@ def trees(tmp_path_factory) -> dict:
     from test_modelnet_points import make_h5
     from test_scanobjectnn import VARIANTS, _write
     from test_shapenet import _tree as shapenet_tree
+    from test_shapenet_parts import _tree as shapenet_parts_tree
 
     root = tmp_path_factory.mktemp("datasets")
     folder, train_file, test_file, _, _ = VARIANTS["pb_t50_rs"]  # the variant the files default to
@@ -40,7 +41,8 @@ def trees(tmp_path_factory) -> dict:
     _write(root / "ScanObjectNN" / folder / test_file, 5, 1)
     return {"modelnet40": modelnet_tree(root / "ModelNet40", broken=False), "scanobjectnn": root / "ScanObjectNN",
             "modelnet40_h5": make_h5(root / "modelnet40_ply_hdf5_2048"),
-            "shapenet": shapenet_tree(root / "ShapeNetCore.v2"), "cache": root / "cache"}
+            "shapenet": shapenet_tree(root / "ShapeNetCore.v2"), "cache": root / "cache",
+            "shapenet_parts": shapenet_parts_tree(root / "shapenetcore_partanno_segmentation_benchmark_v0_normal")}
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -62,7 +62,7 @@ def test_the_targets_are_the_views_label_images_with_the_background_class(cache)
 
 
 def test_the_loss_is_per_pixel_cross_entropy_and_the_points_loss_lifts(cache):
-    _, model, head, batch = model_and_batch(cache, **{"selector.name": "circular"})
+    _, model, head, batch = model_and_batch(cache, **{"selector.name": "circular", "task.condition": "none"})
     views = model.select(batch)
     t = head.targets(model, batch, views)
     logits = torch.randn(*t.pixels.shape[:2], head.num_outputs, *t.pixels.shape[2:])
@@ -73,6 +73,29 @@ def test_the_loss_is_per_pixel_cross_entropy_and_the_points_loss_lifts(cache):
     head.cfg.loss = "points"
     scores, seen = lifting.lift(logits, t.index, t.num_prims, t.prim_of_point)
     assert torch.allclose(head(logits, t), torch.nn.functional.cross_entropy(scores[seen], t.points[seen]))
+
+
+def test_the_category_condition_scores_among_the_categorys_parts_and_the_background(cache):
+    _, model, head, batch = model_and_batch(cache, **{"selector.name": "circular"})
+    t = head.targets(model, batch, model.select(batch))
+    logits = torch.randn(*t.pixels.shape[:2], head.num_outputs, *t.pixels.shape[2:])
+    by_hand = 0.0
+    for b in range(len(t)):
+        cols = head.parts_of[int(batch["labels"][b])] + [head.background]
+        local = torch.tensor([cols.index(int(v)) for v in t.pixels[b].reshape(-1)]).view(t.pixels[b].shape)
+        by_hand += torch.nn.functional.cross_entropy(logits[b][:, cols], local, reduction="sum")
+    assert torch.allclose(head(logits, t), by_hand / t.pixels.numel(), rtol=1e-5)
+    other = logits.clone()
+    other[:, :, head.parts_of[0]] += 100.0  # airplane parts: on shapes of other categories no part is one
+    mine = batch["labels"] != 0
+    assert torch.allclose(head(other[mine], _sub(t, mine)), head(logits[mine], _sub(t, mine)))
+    head.cfg.condition = "none"
+    assert not torch.allclose(head(other[mine], _sub(t, mine)), head(logits[mine], _sub(t, mine)))
+
+
+def _sub(t, keep):
+    return type(t)(t.pixels[keep], t.index[keep], t.points[keep], None if t.prim_of_point is None else
+                   t.prim_of_point[keep], t.num_prims, t.categories[keep])
 
 
 @pytest.mark.parametrize("loss", ["pixels", "points"])

@@ -292,3 +292,22 @@ def test_verify_dataset_counts_the_split_lists_and_names_each_problem(tree, caps
     assert f"{tree / 'train_test_split' / 'shuffled_train_file_list.json'}: 4 shapes, expected 12137" in out
     assert f"{tree}: 1 of 2 point files of shuffled_test_file_list.json missing (<root>/<synset>/<id>.txt)" in out
     assert out[-1] == f"shapenet_parts at {tree}: 10 files, 5 problem(s)"  # (the category file, 3 lists, 6 point files)
+
+
+def test_the_papers_experiment_composes_and_trains_a_step_on_the_official_layout(tree, tmp_path):
+    """``+experiment=paper_part_segmentation`` as composed (DeepLabV3 with its auxiliary head on
+    ResNet-101, mode fusion, the 2D loss), made small: one epoch of 64 px fixed views from scratch
+    (its learned views: tests/test_paper_experiments.py)."""
+    selector = "spherical"
+    from mvtn_exp.config.compose import compose_train_config
+    from mvtn_exp.engine import train
+
+    cfg = compose_train_config(["+experiment=paper_part_segmentation", f"dataset.root={tree}", f"selector={selector}",
+                                f"dataset.cache_dir={tmp_path / 'cache'}", f"dataset.num_points={NUM_POINTS}",
+                                "views=1", "image_size=64", "epochs=1", "batch_size=2", "backbone.weights=null",
+                                "logger.progress=false", "logger.tensorboard=false"])
+    assert (cfg.task.name, cfg.task.fuse, cfg.segnet.name, cfg.segnet.aux, cfg.backbone.name) == \
+        ("segmentation", "mode", "deeplabv3", True, "resnet101")
+    m = train(cfg, tmp_path / "run")
+    assert m["steps"] == 2 and 0.0 <= m["test_instance_miou"] <= 1.0
+    assert set(m["test_per_category_miou"]) == {"Bag", "Table"} and m["test_size"] == 2

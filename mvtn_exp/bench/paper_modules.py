@@ -6,7 +6,8 @@ parameters and the time one input sample takes through it: the PointNet and DGCN
 on ResNet-18 at M = 12 views of 224 px, MVTN's regressor alone (MVTN*) and G whole (MVTN°: the
 paper's PointNet and the regressor). Table 13 (the MVTorch table, L753-L790): the renderer at
 M = 4..12 for points (2,048) and meshes (the benchmark's 2,048-face torus; the paper's meshes are
-ModelNet40's), MVCNN ResNet-18 and G with PointNet or DGCNN at M = 4..12.
+ModelNet40's), MVCNN ResNet-18, G with PointNet or DGCNN, and the segmentation pipeline's C
+(MVPartSeg: DeepLabV3 on ResNet-101 with its auxiliary head, 51 outputs) at M = 4..12.
 
 Ours: one sample (batch 1), forward in eval mode under ``no_grad`` on the benchmark's device;
 FLOPs are ``torch.utils.flop_counter`` counts (matrix products and convolutions, 2 per
@@ -28,13 +29,15 @@ from .timing import med_ms, time_runs
 
 POINTS = 2048
 NUM_CLASSES = 40
+PARTS = 50  # ShapeNet Parts
 G, M_, K_ = 1e9, 1e6, 1e3
 # Table 12 (L737-L744): network -> (FLOPs, MACs, parameters, ms)
 PAPER_T12 = {"PointNet": (1.78 * G, 0.89 * G, 3.49 * M_, 3.34), "DGCNN": (10.42 * G, 5.21 * G, 0.95 * M_, 16.35),
              "MVCNN": (43.72 * G, 21.86 * G, 11.20 * M_, 39.89), "ViewGCN": (44.19 * G, 22.09 * G, 23.56 * M_, 26.06),
              "MVTN* (regressor)": (18.52 * K_, 9.26 * K_, 9.09 * K_, 0.9),
              "MVTN° (PointNet + regressor)": (1.78 * G, 0.89 * G, 4.24 * M_, 3.50)}
-# Table 13 (L768-L790): (module, M) -> (ms, parameters, FLOPs or None)
+SEG = "C DeepLabV3 ResNet-101"  # MVPartSeg's 2D network: 61 M parameters with the auxiliary head
+# Table 13 (L768-L792): (module, M) -> (ms, parameters, FLOPs or None)
 PAPER_T13 = {
     **{("R points", m): (t, 0.0, None) for m, t in zip((4, 6, 8, 10, 12), (10.74, 12.61, 15.42, 17.45, 20.16))},
     **{("R meshes", m): (t, 0.0, None) for m, t in zip((4, 6, 8, 10, 12), (19.15, 25.11, 28.83, 32.94, 37.55))},
@@ -44,6 +47,8 @@ PAPER_T13 = {
        zip((4, 6, 8, 10, 12), (3.46, 3.44, 3.46, 3.44, 3.42), (3.47, 3.47, 3.47, 3.48, 3.48))},
     **{("G DGCNN", m): (t, p * M_, 10.42 * G) for m, t, p in
        zip((4, 6, 8, 10, 12), (4.09, 4.10, 4.10, 4.10, 4.10), (0.95, 0.96, 0.96, 0.96, 0.96))},
+    **{(SEG, m): (t, 61.00 * M_, f * G) for m, t, f in   # MVPartSeg deeplab (L788-L792)
+       zip((4, 6, 8, 10, 12), (54.00, 67.15, 91.04, 112.52, 121.49), (387.74, 581.61, 775.48, 969.35, 1163.21))},
 }
 
 
@@ -124,11 +129,18 @@ def table13(device, size: int, views, repeats: int, budget_s: float, seed: int =
         torch.manual_seed(seed)
         imgs = torch.rand(1, M, 3, size, size, generator=gen).to(device)
         nets = (("MVCNN ResNet-18", build_multiview("mvcnn", "resnet18", NUM_CLASSES), imgs),
-                ("G PointNet", _g(M, PaperPointNetConfig()), pts), ("G DGCNN", _g(M, dgcnn), pts))
+                ("G PointNet", _g(M, PaperPointNetConfig()), pts), ("G DGCNN", _g(M, dgcnn), pts),
+                (SEG, _segmenter(), imgs))
         for label, net, x in nets:
             rows.append(dict(module=label, M=M, **_measure(net, (x,), device, repeats, budget_s),
                              paper=PAPER_T13.get((label, M))))
     return rows
+
+
+def _segmenter():
+    """MVPartSeg's C: DeepLabV3 on ResNet-101 with the auxiliary head (torchvision's 61.0 M
+    parameters with 21 outputs; here the 50 parts of ShapeNet Parts and the background)."""
+    return OPTIONS["segnet"].schema("deeplabv3")(aux=True).validate().build_c(PARTS + 1, "resnet101")
 
 
 def paper_module_rows(quick: bool, device, repeats: int, budget_s: float, seed: int = 0) -> dict:

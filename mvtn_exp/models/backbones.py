@@ -1,6 +1,6 @@
 """The project's own 2D image backbones (no torchvision dependency).
 
-* ``resnet18`` / ``resnet34`` / ``resnet50``: ResNets written from scratch whose
+* ``resnet18`` / ``resnet34`` / ``resnet50`` / ``resnet101``: ResNets written from scratch whose
   ``state_dict`` keys and shapes are identical to torchvision's, so a torchvision
   ``.pth`` file loads with ``load_state_dict(strict=True)``.
 * ``SmallCNN`` / ``small_cnn``: a fast CPU backbone for tests and quick experiments.
@@ -263,6 +263,11 @@ def resnet50(num_classes: int = 1000, weights: Optional[PathLike] = None, in_cha
     return _resnet(Bottleneck, [3, 4, 6, 3], num_classes, weights, in_channels)
 
 
+def resnet101(num_classes: int = 1000, weights: Optional[PathLike] = None, in_channels: int = 3) -> ResNet:
+    """ResNet-101, ``[N, 3, H, W] -> [N, num_classes]``, feature_dim 2048 (DeepLabV3's in the paper)."""
+    return _resnet(Bottleneck, [3, 4, 23, 3], num_classes, weights, in_channels)
+
+
 def small_cnn(num_classes: int = 1000, weights: Optional[PathLike] = None, in_channels: int = 3,
               width: int = 32) -> SmallCNN:
     """SmallCNN, ``[N, 3, H, W] -> [N, num_classes]`` (H, W >= 16), feature_dim ``8 * width``."""
@@ -347,6 +352,17 @@ class ResNet50Config(BackboneConfig):
 
     name: str = "resnet50"
     network = staticmethod(resnet50)
+    feature_dim = 2048
+
+
+@register("resnet101")
+@dataclass
+class ResNet101Config(BackboneConfig):
+    """ResNet-101 (torchvision's keys and init, bottleneck blocks): 2048-d features; the paper's
+    DeepLabV3 backbone for part segmentation."""
+
+    name: str = "resnet101"
+    network = staticmethod(resnet101)
     feature_dim = 2048
 
 

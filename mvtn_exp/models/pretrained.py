@@ -72,6 +72,7 @@ PUBLISHED: dict[tuple[str, str], Published] = {
     ("resnet18", "imagenet"): Published(f"{_TV}/resnet18-f37072fd.pth", "f37072fd", "torchvision IMAGENET1K_V1"),
     ("resnet34", "imagenet"): Published(f"{_TV}/resnet34-b627a593.pth", "b627a593", "torchvision IMAGENET1K_V1"),
     ("resnet50", "imagenet"): Published(f"{_TV}/resnet50-0676ba61.pth", "0676ba61", "torchvision IMAGENET1K_V1"),
+    ("resnet101", "imagenet"): Published(f"{_TV}/resnet101-63fe2227.pth", "63fe2227", "torchvision IMAGENET1K_V1"),
     ("vit_tiny", "imagenet"): Published(f"{_DEIT}/deit_tiny_patch16_224-a1311bcf.pth", "a1311bcf", "DeiT-Ti, ImageNet-1k"),
     ("vit_small", "imagenet"): Published(f"{_DEIT}/deit_small_patch16_224-cd65a155.pth", "cd65a155", "DeiT-S, ImageNet-1k"),
     ("vit_base", "imagenet"): Published(f"{_DEIT}/deit_base_patch16_224-b5f2ef4d.pth", "b5f2ef4d", "DeiT-B, ImageNet-1k"),

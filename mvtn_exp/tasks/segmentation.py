@@ -26,19 +26,22 @@ from . import lifting, part_metrics
 from .classification import summarize
 from .config import TaskConfig
 
+MASKED = -1e4  # an output the shape's category rules out (condition=category)
+
 
 @dataclass
 class Targets:
     """What the loss of a batch compares with: ``pixels [B, M, H, W]`` (part per pixel, the
     background class where no primitive shows), ``index [B, M, H, W]`` (the primitive per pixel,
     -1 background), ``points [B, P]`` (part per point), ``prim_of_point [B, P]`` (a mesh point's
-    face; None for clouds) and ``num_prims``. ``len``: the shapes."""
+    face; None for clouds), ``num_prims`` and ``categories [B]``. ``len``: the shapes."""
 
     pixels: Tensor
     index: Tensor
     points: Tensor
     prim_of_point: Optional[Tensor]
     num_prims: int
+    categories: Tensor  # [B] the shapes' category indices
 
     def __len__(self) -> int:
         return len(self.pixels)
@@ -70,6 +73,18 @@ class Segmentation:
         self.classes = list(dataset.classes)
         self.background = len(self.names)  # C's last output
         self.num_outputs = len(self.names) + 1
+        allowed = torch.zeros(len(self.classes), self.num_outputs, dtype=torch.bool)
+        for c, parts in self.parts_of.items():
+            allowed[c, parts + [self.background]] = True
+        self.allowed = allowed  # [categories, outputs]: each category's parts and the background
+
+    def conditioned(self, logits: Tensor, categories: Tensor) -> Tensor:
+        """``logits [B, M, K, H, W]`` with ``condition=category``: every output outside the shape's
+        category's parts and the background set to ``MASKED`` (finite: softmax gives it 0)."""
+        if self.cfg.condition != "category":
+            return logits
+        keep = self.allowed.to(logits.device)[categories.to(logits.device)]  # [B, K]
+        return logits.masked_fill(~keep[:, None, :, None, None], MASKED)
 
     def targets(self, model, batch: dict, views) -> Targets:
         """The label images of ``views`` (each ``[B, M]``, as R renders them); no gradient."""
@@ -77,10 +92,12 @@ class Segmentation:
         index = model.primitive_index(batch, *views)
         pixels = lifting.pixel_labels(index, prim_labels)
         pixels = pixels.masked_fill(pixels < 0, self.background)
-        return Targets(pixels, index, batch["part_labels"].to(model.device), prim_of_point, n)
+        return Targets(pixels, index, batch["part_labels"].to(model.device), prim_of_point, n,
+                       batch["labels"].to(model.device))
 
     def __call__(self, logits: Tensor, targets: Targets) -> Tensor:
-        """C's loss: ``logits [B, M, K, H, W]`` against ``targets`` (``task.loss``)."""
+        """C's loss: ``logits [B, M, K, H, W]`` against ``targets`` (``task.loss``, ``task.condition``)."""
+        logits = self.conditioned(logits, targets.categories)
         if self.cfg.loss == "pixels":
             return F.cross_entropy(logits.flatten(0, 1), targets.pixels.flatten(0, 1))
         scores, seen = lifting.lift(logits, targets.index, targets.num_prims, targets.prim_of_point, fuse="mean")
@@ -91,12 +108,13 @@ class Segmentation:
     def hits(self, logits: Tensor, targets: Targets) -> float:
         """The share of the part pixels (not the background) whose argmax is their part."""
         on = targets.pixels != self.background
-        right = (logits.detach().argmax(2) == targets.pixels) & on
+        right = (self.conditioned(logits.detach(), targets.categories).argmax(2) == targets.pixels) & on
         return float(right.sum()) / max(int(on.sum()), 1)
 
     def predict(self, logits: Tensor, targets: Targets, batch: dict) -> tuple[Tensor, Tensor]:
         """Per point: the predicted part among the category's ``[B, P]`` and whether a view saw it."""
-        scores, seen = lifting.lift(logits.float(), targets.index, targets.num_prims, targets.prim_of_point,
+        logits = self.conditioned(logits.float(), targets.categories)
+        scores, seen = lifting.lift(logits, targets.index, targets.num_prims, targets.prim_of_point,
                                     fuse=self.cfg.fuse)
         scores = lifting.fill_unseen(batch["points"].to(scores.device).float(), scores, seen)
         return part_metrics.restrict(scores, batch["labels"], self.parts_of), seen
@@ -137,7 +155,8 @@ class Segmentation:
         """The first shapes' views ``images [B, M, 3, H, W]``, the first shape's predicted and true
         label images ``[M, H, W]`` (part id, -1 background) and its points with the predicted parts."""
         label = lambda x: x.masked_fill(x == self.background, -1).cpu()  # noqa: E731
-        return {"images": out["images"].cpu(), "pred_views": label(out["logits"][0].argmax(1)),
+        shown = self.conditioned(out["logits"][:1], targets.categories[:1])[0].argmax(1)
+        return {"images": out["images"].cpu(), "pred_views": label(shown),
                 "true_views": label(targets.pixels[0]), "points": batch["points"][0].cpu(),
                 "point_parts": pred[0].cpu(), "num_parts": len(self.names)}
 
