@@ -97,7 +97,7 @@ def test_quick_benchmark_cli(tmp_path):
 def test_the_papers_time_and_memory_tables_beside_ours():
     """The paper's Tables 12 and 13 (L728-L790) as rows: our parameters and FLOPs of the same
     networks (exact where the architecture is the paper's), the paper's numbers beside them."""
-    from mvtn_exp.bench.paper_modules import PAPER_T12, markdown, paper_module_rows
+    from mvtn_exp.bench.paper_modules import PAPER_T12, SEG, markdown, paper_module_rows
     from mvtn_exp.models.point_encoders import PaperPointNet
 
     res = paper_module_rows(True, "cpu", repeats=1, budget_s=0.01)
@@ -111,7 +111,10 @@ def test_the_papers_time_and_memory_tables_beside_ours():
     assert abs(t12["PointNet"]["flops"] / PAPER_T12["PointNet"][0] - 1) < 0.03  # 2,048 points: the paper's FLOPs
     assert t12["MVTN° (PointNet + regressor)"]["flops"] > t12["PointNet"]["flops"] > 1e3 * t12["MVTN* (regressor)"]["flops"]
     t13 = {(r["module"], r["M"]): r for r in res["t13"]}
-    assert {m for m, _ in t13} == {"R points", "R meshes", "MVCNN ResNet-18", "G PointNet", "G DGCNN"}
+    assert {m for m, _ in t13} == {"R points", "R meshes", "MVCNN ResNet-18", "G PointNet", "G DGCNN", SEG}
+    # MVPartSeg's C: torchvision's DeepLabV3-ResNet101 with its auxiliary head (60,996,202 with 21
+    # outputs) with 51 outputs (each 1x1 classifier: 30 more outputs of 256 weights and a bias)
+    assert t13[(SEG, 4)]["params"] == 60_996_202 + 2 * 30 * 257 and t13[(SEG, 4)]["paper"][1] == 61.0e6
     # C's FLOPs grow with the views: 4 of 12 at the same image size
     assert t13[("MVCNN ResNet-18", 4)]["flops"] == pytest.approx(t12["MVCNN"]["flops"] / 3, rel=1e-4)  # (+ one head)
     assert t13[("R points", 4)]["flops"] is None and all(r["ms"] > 0 for r in res["t12"] + res["t13"])
