@@ -93,7 +93,10 @@ class MVTN(nn.Module):
             points = points[:, :n]  # the points are uniform surface samples in random order
         if all_hypotheses:
             return self.selector(points.to(self.device), all_hypotheses=True)
-        views = self.selector(points.to(self.device))
+        if getattr(self.selector, "categories", 0):  # G conditioned on the shape's category (segmentation)
+            views = self.selector(points.to(self.device), category=batch["labels"].to(self.device))
+        else:
+            views = self.selector(points.to(self.device))
         if refine:  # evaluation reads no labels: the selector gets the batch without them
             seen = batch if self.training else {k: v for k, v in batch.items() if k != "labels"}
             views = self.selector.refine(self, seen, views)
@@ -136,7 +139,7 @@ class MVTN(nn.Module):
                 "selector": [p for p in self.selector.parameters() if p.requires_grad]}
 
 
-def build_mvtn(cfg: TrainConfig, num_classes: int, pretrained_weights: bool = True) -> MVTN:
+def build_mvtn(cfg: TrainConfig, num_classes: int, pretrained_weights: bool = True, categories: int = 0) -> MVTN:
     """G, R and C as ``cfg`` (a validated ``TrainConfig``) describes them, C with ``num_classes``
     outputs (the task head's ``num_outputs``); C is ``cfg.mvnet``'s, or ``cfg.segnet``'s over every
     view under ``task=segmentation``.
@@ -145,7 +148,9 @@ def build_mvtn(cfg: TrainConfig, num_classes: int, pretrained_weights: bool = Tr
     initial weights and every later random draw (order, light, colour) are the same whichever
     selector is chosen: fixed and learned views are compared on equal terms.
     pretrained_weights: load ``backbone.weights`` (``imagenet`` from torch's hub cache, downloaded
-    once: ``models/pretrained.py``); False when a checkpoint's weights replace them anyway (evaluation)."""
+    once: ``models/pretrained.py``); False when a checkpoint's weights replace them anyway (evaluation).
+    categories: the dataset's category count, for a G that reads the shape's category
+    (``selector.category_input``)."""
     weights = pretrained.resolve(cfg.backbone.name, cfg.backbone.weights) if pretrained_weights else None
     if cfg.task.name == "segmentation":  # C: the 2D segmentation network over every view
         mvnet = cfg.segnet.build_c(num_classes, cfg.backbone.name, weights=weights, input_norm=cfg.backbone.input_norm)
@@ -153,7 +158,8 @@ def build_mvtn(cfg: TrainConfig, num_classes: int, pretrained_weights: bool = Tr
         mvnet = cfg.mvnet.build(cfg.backbone.name, num_classes, weights=weights, input_norm=cfg.backbone.input_norm,
                                 point_encoder=cfg.point_encoder)
     with torch.random.fork_rng(devices=[]):
-        selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder)
+        conditioned = {"categories": categories} if getattr(cfg.selector, "category_input", False) else {}
+        selector = cfg.selector.build(cfg.views, seed=cfg.seed, point_encoder=cfg.point_encoder, **conditioned)
     model = MVTN(selector, MultiViewRenderer(cfg.renderer), mvnet, shape=cfg.dataset.shape,
                  selector_points=cfg.selector.kept_points(), **cfg.selector.modules(cfg.views),
                  canonical=CanonicalPose() if cfg.selector.canonical == "pca" else None)

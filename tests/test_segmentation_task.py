@@ -40,7 +40,7 @@ def model_and_batch(cache, **kw):
     ds = build_dataset(cfg.dataset, "train", progress=False)
     head = build_head(cfg.task, ds)
     torch.manual_seed(0)
-    model = build_mvtn(cfg, num_classes=head.num_outputs)
+    model = build_mvtn(cfg, num_classes=head.num_outputs, categories=len(ds.classes))
     return cfg, model, head, collate_shapes([ds[i] for i in range(4)])
 
 
@@ -206,3 +206,36 @@ def test_a_classifier_checkpoint_is_refused_by_segmentation_evaluation(learned_r
     bad = _cli([f"ckpt={tmp_path / 'cls.pt'}", "task=segmentation", f"hydra.run.dir={tmp_path / 'e'}"], tmp_path)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
     assert "was trained with task=classification: it cannot be evaluated with task=segmentation" in bad.stderr
+
+
+def test_g_can_read_the_shapes_category_and_learns_from_it(cache):
+    cfg, model, head, batch = model_and_batch(cache, **{"selector.category_input": True})
+    assert model.selector.categories == 5  # built from the dataset's category count (the trainer's)
+    last = model.selector.regressor[-1]
+    torch.nn.init.normal_(last.weight, std=0.5)  # (at init G sits exactly at u0 whatever its input)
+    model.eval()
+    same = dict(batch, points=batch["points"][:1].expand(2, -1, -1), labels=torch.tensor([0, 3]))
+    azim, elev, _ = model.select(same)
+    assert not torch.allclose(azim[0], azim[1])  # one point cloud, two categories: two sets of views
+    model.train()
+    training = LearnedTraining(cfg)
+    training.start_epoch(model, 1, 1e-3, hold_views=False)
+    training.train_step(model, batch, 0, head, StepTimer(torch.device("cpu"))).objective.backward()
+    category_columns = model.selector.regressor[0].weight.grad[:, -5:]  # (the input's last 5: the one-hot)
+    assert float(category_columns.abs().sum()) > 0  # the loss reaches the category's weights
+
+
+def test_a_run_with_gs_category_input_trains_tests_and_reloads(cache, tmp_path):
+    from mvtn_exp.config.eval_schema import EvalConfig
+    from mvtn_exp.evaluation.evaluate import evaluate_checkpoint
+
+    m = train(seg(cache, **{"selector.category_input": True}), tmp_path / "run")
+    again = evaluate_checkpoint(EvalConfig(ckpt=str(tmp_path / "run" / "best.pt"), progress=False), tmp_path / "eval")
+    assert again["test_instance_miou"] == pytest.approx(m["test_instance_miou"])
+
+
+def test_g_never_reads_the_label_of_a_classification(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "mvtn_exp.cli.train", "selector.category_input=true",
+                          f"hydra.run.dir={tmp_path / 'r'}"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "selector.category_input=true with task=classification: G would read the label it is to predict" in out.stderr

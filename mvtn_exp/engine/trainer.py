@@ -13,6 +13,7 @@ import logging
 import math
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -264,7 +265,8 @@ def build_state(cfg: TrainConfig, run_dir: Path, build_model, datasets: dict, de
     world = distributed.from_env()
     classes = list(datasets["train"].classes)
     head = build_head(cfg.task, datasets["train"])  # the task's loss, targets and evaluation (tasks/heads.py)
-    model = (build_model or build_mvtn)(cfg, num_classes=head.num_outputs).to(device)
+    factory = build_model or partial(build_mvtn, categories=len(classes))
+    model = factory(cfg, num_classes=head.num_outputs).to(device)
     if world.enabled and cfg.sync_bn:  # BatchNorm over the global batch (models/sync_bn.py)
         sync_bn.convert(model)
     g_training = cfg.selector.training()(cfg)  # how G trains (selectors/training.py)

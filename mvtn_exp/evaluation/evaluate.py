@@ -30,9 +30,9 @@ def config_from_checkpoint(state: dict, path) -> TrainConfig:
                                             f"version's schema ({str(exc).splitlines()[0]})") from exc
 
 
-def load_model(cfg: TrainConfig, state: dict, num_classes: int, path, device):
+def load_model(cfg: TrainConfig, state: dict, num_classes: int, path, device, categories: int = 0):
     # (the checkpoint holds C's weights: the pretrained ones are neither downloaded nor read)
-    model = build_mvtn(cfg, num_classes=num_classes, pretrained_weights=False).to(device)
+    model = build_mvtn(cfg, num_classes=num_classes, pretrained_weights=False, categories=categories).to(device)
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as exc:
@@ -63,7 +63,7 @@ def evaluate_segmentation(ecfg: EvalConfig, cfg: TrainConfig, state: dict, datas
         raise ValueError("views=true: the view analysis is made for classification; leave it unset for a "
                          "segmentation checkpoint")
     head = build_head(cfg.task, dataset)
-    model = load_model(cfg, state, head.num_outputs, ecfg.ckpt, device)
+    model = load_model(cfg, state, head.num_outputs, ecfg.ckpt, device, categories=len(dataset.classes))
     t0 = time.perf_counter()
     res = head.evaluate(model, eval_loader(cfg, dataset), desc=ecfg.split, progress=ecfg.progress)
     metrics = {"test_acc": res["acc"], "test_mean_class_acc": res["mean_class_acc"], "test_loss": res["loss"],

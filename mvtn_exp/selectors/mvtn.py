@@ -133,7 +133,8 @@ class MVTNSelector(ViewSelector):
                  distance_bound: float = 1.0, elevation: float = 30.0,
                  point_encoder_kwargs: Optional[dict] = None, azim_bound: Optional[float] = None,
                  elev_bound: Optional[float] = None, init_std: Optional[float] = None,
-                 sphere: str = "equal_area", regressor: str = "compact", azim_start: float = 180.0) -> None:
+                 sphere: str = "equal_area", regressor: str = "compact", azim_start: float = 180.0,
+                 categories: int = 0) -> None:
         super().__init__(views)
         if variant not in VARIANTS:
             raise ValueError(f"MVTNSelector: unknown variant {variant!r}; allowed: {', '.join(VARIANTS)}")
@@ -171,16 +172,18 @@ class MVTNSelector(ViewSelector):
         else:
             self.encoder = build_point_encoder(point_encoder, out_features=b, **(point_encoder_kwargs or {}))
         self.regressor_kind = regressor
-        self.regressor = build_regressor(b + 2 * M * self.uses_u0, b, M, (3 if self.learn_distance else 2) * M, init_std,
-                                    regressor)
+        self.categories = int(categories)  # > 0: the shape's category one-hot joins the point features
+        self.regressor = build_regressor(b + 2 * M * self.uses_u0 + self.categories, b, M,
+                                         (3 if self.learn_distance else 2) * M, init_std, regressor)
 
     def initial_views(self, batch: int = 1) -> Views:
         """u0: ``(azim, elev, dist)``, each ``[batch, M]``."""
         azim = self.azim0.expand(batch, -1).clone()
         return azim, self.elev0.expand(batch, -1).clone(), torch.full_like(azim, self.distance)
 
-    def forward(self, points: Tensor) -> Views:
-        """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]`` (degrees, degrees, world units)."""
+    def forward(self, points: Tensor, category: Optional[Tensor] = None) -> Views:
+        """``[B, N, 3] -> (azim, elev, dist)``, each ``[B, M]`` (degrees, degrees, world units);
+        ``category [B]``: the shapes' category indices, read when ``categories`` > 0."""
         self._check_points(points)
         B, M = points.shape[0], self.views
         dtype = self.azim0.dtype
@@ -188,6 +191,10 @@ class MVTNSelector(ViewSelector):
         if self.uses_u0:
             u0 = torch.cat([self.azim0 / 180.0, self.elev0 / 90.0]).expand(B, -1)  # [B, 2M]
             feats = torch.cat([feats, u0], dim=1)
+        if self.categories:
+            if category is None:
+                raise ValueError(f"MVTNSelector(categories={self.categories}): call it with the shapes' categories")
+            feats = torch.cat([feats, nn.functional.one_hot(category.long(), self.categories).to(feats.dtype)], dim=1)
         t = torch.tanh(self.regressor(feats))  # [B, 2M or 3M]
         azim = self.azim0 + self.u_bound[0] * t[:, :M]
         elev = self.elev0 + self.u_bound[1] * t[:, M:2 * M]
@@ -208,7 +215,9 @@ class MVTNConfig(LearnedSelectorConfig):
     """The paper's learned G (a point encoder from the ``point_encoder`` group, then the regressor):
     ``azim_bound`` / ``elev_bound`` (degrees; null: the variant's, see the module docstring),
     ``learn_distance`` within ``distance_bound``, ``init_std`` (null: 0 for the offset variants,
-    PyTorch's default for direct), ``regressor`` (compact | official). Trained as the paper does:
+    PyTorch's default for direct), ``regressor`` (compact | official), ``category_input`` (the
+    shape's category one-hot beside G's point features, as point segmentation models condition on
+    it; ``task=segmentation`` only, where the category is given). Trained as the paper does:
     autograd through the differentiable renderer on C's loss."""
 
     azim_bound: Optional[float] = None
@@ -217,6 +226,7 @@ class MVTNConfig(LearnedSelectorConfig):
     distance_bound: float = 1.0
     init_std: Optional[float] = None
     regressor: str = "compact"
+    category_input: bool = False
 
     variant = ""  # class attribute: the MVTNSelector variant
 
@@ -235,6 +245,9 @@ class MVTNConfig(LearnedSelectorConfig):
 
     def check(self, cfg: "TrainConfig") -> None:
         super().check(cfg)
+        if self.category_input and cfg.task.name != "segmentation":
+            raise ValueError(f"selector.category_input=true with task={cfg.task.name}: G would read the label it is to "
+                             "predict; the category is an input of task=segmentation only")
         n = min(cfg.dataset.num_points, self.num_points or cfg.dataset.num_points)
         cfg.point_encoder.check_points(n, f"selector.num_points={self.num_points}, "
                                           f"dataset.num_points={cfg.dataset.num_points}")
@@ -242,12 +255,16 @@ class MVTNConfig(LearnedSelectorConfig):
     def layout_kwargs(self) -> dict:
         return {"sphere": self.sphere}
 
-    def build(self, views: int, seed: int, point_encoder=None) -> "MVTNSelector":
+    def build(self, views: int, seed: int, point_encoder=None, categories: int = 0) -> "MVTNSelector":
+        """G; ``categories``: the dataset's category count (read with ``category_input``)."""
         pe = point_encoder
+        if self.category_input and categories < 1:
+            raise ValueError("selector.category_input=true: G needs the dataset's category count to build")
         return MVTNSelector(views, self.variant, point_encoder=pe.name, features=pe.features, distance=self.distance,
                             learn_distance=self.learn_distance, distance_bound=self.distance_bound,
                             azim_bound=self.azim_bound, elev_bound=self.elev_bound, init_std=self.init_std,
-                            point_encoder_kwargs=pe.kwargs(), regressor=self.regressor, **self.layout_kwargs())
+                            point_encoder_kwargs=pe.kwargs(), regressor=self.regressor,
+                            categories=categories if self.category_input else 0, **self.layout_kwargs())
 
 
 @register("mvtn_direct")
