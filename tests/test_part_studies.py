@@ -24,3 +24,25 @@ def test_the_time_study_times_every_stage_and_their_sums(tmp_path):
     assert abs(r["segmentation"] - (r["render"] + r["index"] + r["C seg"] + r["lift"])) < 1e-9
     assert abs(r["ratio"] - r["segmentation"] / (r["render"] + r["C cls"])) < 1e-9
     assert timing.markdown([r]).splitlines()[2].startswith("| 2 |")
+
+
+def test_each_parts_iou_from_the_confusion_by_hand(tmp_path):
+    import json
+
+    import numpy as np
+
+    pi = study("part_iou")
+    conf = [[3, 1, 0], [0, 2, 0], [0, 0, 0]]  # part 2: never true, never predicted
+    assert np.allclose(pi.part_iou(conf), [3 / 4, 2 / 3, 0.0])
+    for i, (sel, c) in enumerate([("a", conf), ("a", [[4, 0, 0], [0, 2, 0], [0, 0, 1]]), ("b", conf)]):
+        run = tmp_path / f"r{i}"
+        run.mkdir()
+        (run / "metrics.json").write_text(json.dumps({"part_names": ["x/p", "x/q", "y/r"], "confusion_matrix": c,
+                                                      "config": {"selector": {"name": sel}, "views": 4},
+                                                      "test_instance_miou": 0.5 + i / 10, "test_coverage": 0.9}))
+    names, by = pi.sides([tmp_path], "selector.name")
+    assert names == ["x/p", "x/q", "y/r"] and by["a"][1] == 2 and by["b"][1] == 1
+    assert np.allclose(by["a"][0], [(0.75 + 1.0) / 2, (2 / 3 + 1.0) / 2, 0.5])
+    assert "| x/p | 0.875 | 0.750 |" in pi.markdown(names, by)
+    lines = pi.curve([tmp_path], "selector.name").splitlines()
+    assert lines[2] == "| a | 4 | 2 | 0.550 ± 0.071 | 0.900 ± 0.000 |" and lines[3] == "| b | 4 | 1 | 0.700 ± 0.000 | 0.900 ± 0.000 |"
