@@ -367,3 +367,20 @@ def test_a_mesh_file_without_faces_says_how_many_vertices_it_has(tmp_path, name,
     with pytest.raises(ShapeFileError) as err:
         mesh_io.read_mesh(p)
     assert str(err.value) == f"{p}: 3 vertices and no faces; expected a triangle mesh (a point cloud? use a point file)"
+
+
+def test_a_lock_file_released_while_the_cache_root_is_checked_is_no_stranger(tmp_path, monkeypatch):
+    """Two runs starting at once on a cold cache: one lists the root while the other's
+    ``.npz.lock`` is there and checks it once it is gone; the check passes over it."""
+    from pathlib import Path
+
+    from mvtn_exp.data.synthetic_cache import check_cache_root
+
+    (tmp_path / "synthetic_train_0123.npz").write_bytes(b"")
+    gone = tmp_path / "synthetic_val_0123.npz.lock"  # listed, then released (removed) by the other run
+    listing = Path.iterdir
+    monkeypatch.setattr(Path, "iterdir", lambda self: iter([*listing(self), gone]))
+    check_cache_root(tmp_path, "synthetic")
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(ValueError, match="holds 'notes.txt', which is not a synthetic cache file"):
+        check_cache_root(tmp_path, "synthetic")

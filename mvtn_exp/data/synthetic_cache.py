@@ -30,6 +30,8 @@ def check_cache_root(root: Path, prefix: str) -> None:
     if not root.is_dir():
         return
     for entry in sorted(root.iterdir()):
+        if not entry.exists():  # gone since the listing: another run's lock or temp file, released meanwhile
+            continue
         if not (entry.is_file() and entry.name.startswith("synthetic") and entry.name.endswith((".npz", ".tmp", ".lock"))):
             raise ValueError(f"dataset {prefix}: root {str(root)!r} holds {entry.name!r}, which is not a synthetic "
                              f"cache file; this root is the folder the dataset caches itself in: point it at an "
