@@ -72,3 +72,31 @@ def test_every_segnet_option_builds_from_its_config(name):
 def test_deeplabv3_refuses_a_backbone_that_is_no_resnet():
     with pytest.raises(ValueError, match="needs a ResNet backbone"):
         OPTIONS["segnet"]["deeplabv3"]().build(4, backbone="small_cnn")
+
+
+def test_the_small_fcns_stages_and_depth_shape_the_network_and_keep_the_default():
+    """``stages`` downsamplings (the bottleneck at 1 / 2**stages of the input), ``depth`` conv layers
+    per stage (the extra ones residual); the defaults give the original network's keys."""
+    base = SmallFCN(5, width=8)
+    assert [k for k in base.state_dict() if k.endswith("weight")][:3] == ["stem.0.weight", "stem.1.weight",
+                                                                          "down.0.1.0.weight"]
+    seen = {}
+    deep = SmallFCN(5, width=8, stages=3, depth=3)
+    deep.context.register_forward_hook(lambda m, i, o: seen.update(context=o.shape))
+    assert deep.eval()(torch.rand(2, 3, 64, 40)).shape == (2, 5, 64, 40)
+    assert seen["context"] == (2, 64, 8, 5)  # 8 * 2**3 channels at 64 / 8 by ceil(40 / 8)
+    convs = lambda net: sum(isinstance(m, torch.nn.Conv2d) for m in net.modules())
+    assert convs(base) == 1 + 2 + 1 + 2 + 1  # stem, 2 stages, context, 2 decoder steps, classifier
+    assert convs(deep) == 3 * (1 + 3 + 1 + 3) + 1
+    residual = deep.down[0][1][1]
+    with torch.no_grad():
+        for p in residual.f.parameters():
+            p.zero_()  # f(x) = relu(bn(0)) = 0: a residual layer passes its input through
+        x = torch.rand(1, 16, 6, 6)
+        assert torch.equal(residual.eval()(x), x)
+
+
+@pytest.mark.parametrize("key", ["width", "stages", "depth"])
+def test_the_small_fcn_refuses_a_size_below_one(key):
+    with pytest.raises(ValueError, match=f"segnet.{key}"):
+        OPTIONS["segnet"]["fcn_small"](**{key: 0}).validate()

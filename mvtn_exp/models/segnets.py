@@ -98,19 +98,40 @@ class DeepLabV3(nn.Module):
         return out
 
 
-class SmallFCN(nn.Module):
-    """A small fully convolutional net: three strided stages (``width``, 2x, 4x channels), a
-    dilated context conv, and a decoder that adds each stage back as it upsamples:
-    ``[N, in_channels, H, W] -> [N, num_classes, H, W]`` (any H, W)."""
+class Residual(nn.Module):
+    """``x + f(x)``: an extra conv layer of a stage that keeps its input's channels and size."""
 
-    def __init__(self, num_classes: int, in_channels: int = 3, width: int = 16) -> None:
+    def __init__(self, f: nn.Module) -> None:
         super().__init__()
-        w = (width, 2 * width, 4 * width)
-        self.stem = _conv_bn_relu(in_channels, w[0])
-        self.down = nn.ModuleList([nn.Sequential(nn.MaxPool2d(2, ceil_mode=True), _conv_bn_relu(a, b))
+        self.f = f
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x + self.f(x)
+
+
+def _stage(cin: int, cout: int, depth: int, dilation: int = 1) -> nn.Sequential:
+    """One conv to ``cout`` channels, then ``depth - 1`` residual convs at ``cout``."""
+    extra = [Residual(_conv_bn_relu(cout, cout, 3, dilation)) for _ in range(depth - 1)]
+    return nn.Sequential(_conv_bn_relu(cin, cout, 3, dilation), *extra) if extra else _conv_bn_relu(cin, cout, 3,
+                                                                                                    dilation)
+
+
+class SmallFCN(nn.Module):
+    """A small fully convolutional net: a stem and ``stages`` strided stages (``width`` channels,
+    doubled at each stage), a dilated context conv, and a decoder that adds each stage back as it
+    upsamples: ``[N, in_channels, H, W] -> [N, num_classes, H, W]`` (any H, W). Every stage, the
+    context and each decoder step hold ``depth`` conv layers (the ones past the first residual);
+    ``stages=2, depth=1`` is the original network (its parameter names unchanged)."""
+
+    def __init__(self, num_classes: int, in_channels: int = 3, width: int = 16, stages: int = 2,
+                 depth: int = 1) -> None:
+        super().__init__()
+        w = [width * 2 ** i for i in range(stages + 1)]
+        self.stem = _stage(in_channels, w[0], depth)
+        self.down = nn.ModuleList([nn.Sequential(nn.MaxPool2d(2, ceil_mode=True), _stage(a, b, depth))
                                    for a, b in zip(w, w[1:])])
-        self.context = _conv_bn_relu(w[2], w[2], 3, dilation=2)
-        self.up = nn.ModuleList([_conv_bn_relu(b, a) for a, b in zip(w, w[1:])][::-1])
+        self.context = _stage(w[-1], w[-1], depth, dilation=2)
+        self.up = nn.ModuleList([_stage(b, a, depth) for a, b in zip(w, w[1:])][::-1])
         self.classifier = nn.Conv2d(w[0], num_classes, 1)
         self.aux_logits: Optional[Tensor] = None
         _init_weights(self)
@@ -213,15 +234,20 @@ class DeepLabV3Config(SegNetConfig):
 @register("fcn_small")
 @dataclass
 class SmallFCNConfig(SegNetConfig):
-    """A small fully convolutional net for CPU runs (``width`` channels in its first stage)."""
+    """A small fully convolutional net for CPU runs: ``width`` channels in its first stage,
+    ``stages`` downsamplings by 2 (each doubling the channels), ``depth`` conv layers per stage."""
 
     name: str = "fcn_small"
     width: int = 16
+    stages: int = 2
+    depth: int = 1
 
     def validate(self) -> "SmallFCNConfig":
         super().validate()
         at_least("segnet.width", self.width, 1)
+        at_least("segnet.stages", self.stages, 1)
+        at_least("segnet.depth", self.depth, 1)
         return self
 
     def build(self, num_classes: int, backbone: str = "resnet50", weights: Optional[str] = None) -> nn.Module:
-        return SmallFCN(num_classes, width=self.width)
+        return SmallFCN(num_classes, width=self.width, stages=self.stages, depth=self.depth)
