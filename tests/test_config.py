@@ -87,6 +87,8 @@ def test_every_experiment_composes(name):
         assert (cfg.dataset.name, cfg.task.name, cfg.segnet.name, cfg.views, cfg.epochs) == \
             ("synthetic_parts", "segmentation", "fcn_small", 4, 60)
         assert cfg.selector.name == ("mvtn_spherical" if "learned" in name else "spherical")
+        balanced = "balanced" in name  # the second recipe: batch 2, the inverse-sqrt class weights
+        assert (cfg.batch_size, cfg.task.balance) == ((2, "inverse_sqrt") if balanced else (8, "none"))
     elif name.startswith(("synthetic", "tradeoff")):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups: dataset, G, C, M, epochs, C's learning rate

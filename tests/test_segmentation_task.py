@@ -75,6 +75,31 @@ def test_the_loss_is_per_pixel_cross_entropy_and_the_points_loss_lifts(cache):
     assert torch.allclose(head(logits, t), torch.nn.functional.cross_entropy(scores[seen], t.points[seen]))
 
 
+def test_the_balanced_loss_weighs_each_class_by_one_over_the_root_of_its_count(cache):
+    """``task.balance=inverse_sqrt``: sum_i w(y_i) * nll_i / sum_i w(y_i), w = count(y)**-0.5 in the
+    batch's targets, by hand; a rare class's mistakes cost more than under the paper's loss."""
+    _, model, head, batch = model_and_batch(cache, **{"selector.name": "circular", "task.condition": "none",
+                                                      "task.balance": "inverse_sqrt"})
+    t = head.targets(model, batch, model.select(batch))
+    logits = torch.randn(*t.pixels.shape[:2], head.num_outputs, *t.pixels.shape[2:])
+    y = t.pixels.reshape(-1)
+    w = torch.bincount(y, minlength=head.num_outputs).float()[y].rsqrt()
+    nll = -logits.log_softmax(2).permute(0, 1, 3, 4, 2).reshape(-1, head.num_outputs).gather(1, y[:, None])[:, 0]
+    assert torch.allclose(head(logits, t), (w * nll).sum() / w.sum(), rtol=1e-5)
+    rare = int(torch.bincount(y).masked_fill(torch.bincount(y) == 0, y.numel()).argmin())
+    wrong = logits.clone()
+    wrong[:, :, rare] -= 20.0 * (t.pixels == rare)  # only the rare class's pixels made wrong
+    head.cfg.balance = "none"
+    plain = float(head(wrong, t) - head(logits, t))
+    head.cfg.balance = "inverse_sqrt"
+    assert float(head(wrong, t) - head(logits, t)) > 2 * plain > 0
+    head.cfg.loss = "points"
+    scores, seen = lifting.lift(logits, t.index, t.num_prims, t.prim_of_point)
+    counts = torch.bincount(t.points[seen], minlength=head.num_outputs).clamp_min(1).float()
+    assert torch.allclose(head(logits, t), torch.nn.functional.cross_entropy(scores[seen], t.points[seen],
+                                                                             weight=counts.rsqrt()), rtol=1e-5)
+
+
 def test_the_category_condition_scores_among_the_categorys_parts_and_the_background(cache):
     _, model, head, batch = model_and_batch(cache, **{"selector.name": "circular"})
     t = head.targets(model, batch, model.select(batch))
@@ -239,3 +264,10 @@ def test_g_never_reads_the_label_of_a_classification(tmp_path):
                           f"hydra.run.dir={tmp_path / 'r'}"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "selector.category_input=true with task=classification: G would read the label it is to predict" in out.stderr
+
+
+def test_an_unknown_balance_is_refused_naming_the_key():
+    from mvtn_exp.tasks.config import TaskConfig
+
+    with pytest.raises(ValueError, match=r"task\.balance.*inverse_sqrt"):
+        TaskConfig(name="segmentation", balance="median").validate()

@@ -9,6 +9,7 @@ from .lifting import FUSIONS
 TASKS = ("classification", "segmentation")
 SEG_LOSSES = ("pixels", "points")
 CONDITIONS = ("category", "none")
+BALANCES = ("none", "inverse_sqrt")
 
 
 @dataclass
@@ -31,6 +32,7 @@ class TaskConfig:
     fuse: str = "mode"
     loss: str = "pixels"
     condition: str = "category"
+    balance: str = "none"
 
     def validate(self) -> "TaskConfig":
         one_of("task", self.name, TASKS)
@@ -38,4 +40,5 @@ class TaskConfig:
         one_of("task.fuse", self.fuse, FUSIONS)
         one_of("task.loss", self.loss, SEG_LOSSES)
         one_of("task.condition", self.condition, CONDITIONS)
+        one_of("task.balance", self.balance, BALANCES)
         return self

@@ -99,11 +99,21 @@ class Segmentation:
         """C's loss: ``logits [B, M, K, H, W]`` against ``targets`` (``task.loss``, ``task.condition``)."""
         logits = self.conditioned(logits, targets.categories)
         if self.cfg.loss == "pixels":
-            return F.cross_entropy(logits.flatten(0, 1), targets.pixels.flatten(0, 1))
+            return F.cross_entropy(logits.flatten(0, 1), targets.pixels.flatten(0, 1),
+                                   weight=self.class_weights(targets.pixels, logits.shape[2]))
         scores, seen = lifting.lift(logits, targets.index, targets.num_prims, targets.prim_of_point, fuse="mean")
         if not bool(seen.any()):
             return logits.sum() * 0.0
-        return F.cross_entropy(scores[seen], targets.points[seen])
+        return F.cross_entropy(scores[seen], targets.points[seen],
+                               weight=self.class_weights(targets.points[seen], scores.shape[-1]))
+
+    def class_weights(self, labels: Tensor, classes: int) -> Optional[Tensor]:
+        """``task.balance``: None (every target alike) or ``[classes]`` weights, 1 / sqrt of each
+        class's count in ``labels`` (a class absent from them: weight 1, unused by the loss)."""
+        if self.cfg.balance == "none":
+            return None
+        counts = torch.bincount(labels.flatten(), minlength=classes)[:classes]
+        return counts.clamp_min(1).float().rsqrt()
 
     def hits(self, logits: Tensor, targets: Targets) -> float:
         """The share of the part pixels (not the background) whose argmax is their part."""
