@@ -14,6 +14,12 @@ def test_a_perfect_c_scores_the_views_ceiling_more_views_see_more(tmp_path):
     assert one["instance_miou"] < four["instance_miou"] <= 1.0
     table = oracle.markdown([one, four])
     assert table.count("\n") == 4 and "| spherical | 4 | 32 |" in table
+    assert all(0.0 <= v <= 1.0 for v in four["parts"].values())
+    ds = oracle.build_dataset(oracle.compose_train_config(["task=segmentation", "dataset=synthetic_parts", *over]).dataset,
+                              "test", progress=False)
+    assert set(four["parts"]) == {ds.part_names[int(k)] for i in range(len(ds)) for k in ds[i]["part_labels"].unique()}
+    parts = oracle.parts_markdown([one, four]).splitlines()
+    assert parts[0] == "| part | spherical M = 1 | spherical M = 4 |" and len(parts) == 2 + len(four["parts"])
 
 
 def test_the_time_study_times_every_stage_and_their_sums(tmp_path):

@@ -7,8 +7,9 @@ the views miss: points no view sees, filled from the wrong part, and pixels too 
 part. No training: the selector's views are its layout (a learned G would start from these).
 
 Run: ``python scripts/studies/parts_oracle.py [--selectors spherical circular] [--views 1 4 8 12]
-[--split test] [overrides ...]`` (Markdown on stdout; overrides as ``mvtn-train``'s, e.g.
-``dataset.seed=1 image_size=128``).
+[--split test] [--parts] [overrides ...]`` (Markdown on stdout; overrides as ``mvtn-train``'s, e.g.
+``dataset.seed=1 image_size=128``). ``--parts`` adds each part's IoU over all the split's points
+(as ``part_iou.py`` counts a trained C's), one column per selector and M.
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ def oracle(selector: str, M: int, split: str, overrides=(), batch: int = 8) -> d
     head = build_head(cfg.task, ds)
     model = build_mvtn(cfg, head.num_outputs).eval()
     ious, seen_share = [], []
+    inter, union = torch.zeros(len(head.names)), torch.zeros(len(head.names))
     with torch.no_grad():
         for start in range(0, len(ds), batch):
             b = collate_shapes([ds[i] for i in range(start, min(start + batch, len(ds)))])
@@ -40,7 +42,11 @@ def oracle(selector: str, M: int, split: str, overrides=(), batch: int = 8) -> d
             pred, seen = head.predict(perfect, t, b)
             ious += [part_metrics.shape_iou(p, q, head.parts_of[int(c)]) for p, q, c in zip(pred, t.points, b["labels"])]
             seen_share.append(seen.float().mean(1))
-    return {"selector": selector, "M": M, "instance_miou": sum(ious) / len(ious),
+            for k in range(len(head.names)):
+                inter[k] += ((pred == k) & (t.points == k)).sum()
+                union[k] += ((pred == k) | (t.points == k)).sum()
+    parts = {name: float(inter[k] / union[k]) for k, name in enumerate(head.names) if union[k] > 0}
+    return {"selector": selector, "M": M, "instance_miou": sum(ious) / len(ious), "parts": parts,
             "coverage": float(torch.cat(seen_share).mean()), "shapes": len(ious), "image_size": cfg.image_size}
 
 
@@ -50,14 +56,27 @@ def markdown(rows: list[dict]) -> str:
                       f"{r['coverage']:.3f} | {r['shapes']} |\n" for r in rows))
 
 
+def parts_markdown(rows: list[dict]) -> str:
+    """Each part's IoU (rows) for each selector and M (columns)."""
+    names = sorted({name for r in rows for name in r["parts"]})
+    head = "| part | " + " | ".join(f"{r['selector']} M = {r['M']}" for r in rows) + " |\n"
+    lines = [f"| {n} | " + " | ".join(f"{r['parts'][n]:.3f}" if n in r["parts"] else "-" for r in rows) + " |\n"
+             for n in names]
+    return head + "|---" * (len(rows) + 1) + "|\n" + "".join(lines)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--selectors", nargs="+", default=["spherical", "circular"])
     p.add_argument("--views", type=int, nargs="+", default=[1, 4, 8, 12])
     p.add_argument("--split", default="test")
+    p.add_argument("--parts", action="store_true", help="add each part's IoU")
     p.add_argument("overrides", nargs="*")
     a = p.parse_args()
-    print(markdown([oracle(s, M, a.split, a.overrides) for s in a.selectors for M in a.views]))
+    rows = [oracle(s, M, a.split, a.overrides) for s in a.selectors for M in a.views]
+    print(markdown(rows))
+    if a.parts:
+        print(parts_markdown(rows))
 
 
 if __name__ == "__main__":
