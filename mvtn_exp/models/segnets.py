@@ -111,9 +111,10 @@ class Residual(nn.Module):
 
 def _stage(cin: int, cout: int, depth: int, dilation: int = 1) -> nn.Sequential:
     """One conv to ``cout`` channels, then ``depth - 1`` residual convs at ``cout``."""
-    extra = [Residual(_conv_bn_relu(cout, cout, 3, dilation)) for _ in range(depth - 1)]
-    return nn.Sequential(_conv_bn_relu(cin, cout, 3, dilation), *extra) if extra else _conv_bn_relu(cin, cout, 3,
-                                                                                                    dilation)
+    first = _conv_bn_relu(cin, cout, 3, dilation)
+    if depth == 1:
+        return first  # the original layer, its parameter names unchanged
+    return nn.Sequential(first, *[Residual(_conv_bn_relu(cout, cout, 3, dilation)) for _ in range(depth - 1)])
 
 
 class SmallFCN(nn.Module):

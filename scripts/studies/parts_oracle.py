@@ -33,7 +33,8 @@ def oracle(selector: str, M: int, split: str, overrides=(), batch: int = 8) -> d
     head = build_head(cfg.task, ds)
     model = build_mvtn(cfg, head.num_outputs).eval()
     ious, seen_share = [], []
-    inter, union = torch.zeros(len(head.names)), torch.zeros(len(head.names))
+    K = len(head.names)
+    confusion = torch.zeros(K * K, dtype=torch.long)  # (true, predicted) over all points
     with torch.no_grad():
         for start in range(0, len(ds), batch):
             b = collate_shapes([ds[i] for i in range(start, min(start + batch, len(ds)))])
@@ -42,9 +43,9 @@ def oracle(selector: str, M: int, split: str, overrides=(), batch: int = 8) -> d
             pred, seen = head.predict(perfect, t, b)
             ious += [part_metrics.shape_iou(p, q, head.parts_of[int(c)]) for p, q, c in zip(pred, t.points, b["labels"])]
             seen_share.append(seen.float().mean(1))
-            for k in range(len(head.names)):
-                inter[k] += ((pred == k) & (t.points == k)).sum()
-                union[k] += ((pred == k) | (t.points == k)).sum()
+            confusion += torch.bincount((t.points * K + pred).reshape(-1), minlength=K * K)
+    c = confusion.view(K, K).double()
+    inter, union = c.diag(), c.sum(0) + c.sum(1) - c.diag()
     parts = {name: float(inter[k] / union[k]) for k, name in enumerate(head.names) if union[k] > 0}
     return {"selector": selector, "M": M, "instance_miou": sum(ious) / len(ious), "parts": parts,
             "coverage": float(torch.cat(seen_share).mean()), "shapes": len(ious), "image_size": cfg.image_size}
