@@ -93,6 +93,8 @@ def test_every_experiment_composes(name):
         r = cfg.renderer
         want = ("fixed", "fixed", [0.0, 1.0, 0.0], "white", "white") if lit else ("camera", "random", [0.0, 1.0, 0.0], "white", "random")
         assert (r.light, r.train_light, list(r.light_direction), r.color, r.train_color) == want, name
+        if "learned" in name:  # G waits for C only in the lit recipe
+            assert (cfg.selector.warmup_epochs, cfg.selector.warmup_views) == ((20, "u0") if lit else (0, "u0"))
     elif name.startswith(("synthetic", "tradeoff")):
         assert cfg.dataset.name == "synthetic" and cfg.epochs <= 10
     else:  # the paper setups: dataset, G, C, M, epochs, C's learning rate
