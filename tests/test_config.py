@@ -87,11 +87,12 @@ def test_every_experiment_composes(name):
         assert (cfg.dataset.name, cfg.task.name, cfg.segnet.name, cfg.views, cfg.epochs) == \
             ("synthetic_parts", "segmentation", "fcn_small", 4, 60)
         assert cfg.selector.name == ("mvtn_spherical" if "learned" in name else "spherical")
-        balanced = ("balanced" in name) or ("lit" in name)  # the second recipe: batch 2, the inverse-sqrt class weights
+        lit = "lit" in name  # the third recipe: the second, lit from above in world space and white, train as test
+        balanced = "balanced" in name or lit  # the second: batch 2, the inverse-sqrt class weights
         assert (cfg.batch_size, cfg.task.balance) == ((2, "inverse_sqrt") if balanced else (8, "none"))
-        lit = "lit" in name  # the third: the second, lit from above in world space and white, train as test
         r = cfg.renderer
-        want = ("fixed", "fixed", [0.0, 1.0, 0.0], "white", "white") if lit else ("camera", "random", [0.0, 1.0, 0.0], "white", "random")
+        paper_lights = ("camera", "random", [0.0, 1.0, 0.0], "white", "random")
+        want = ("fixed", "fixed", [0.0, 1.0, 0.0], "white", "white") if lit else paper_lights
         assert (r.light, r.train_light, list(r.light_direction), r.color, r.train_color) == want, name
         if "learned" in name:  # G waits for C only in the lit recipe
             assert (cfg.selector.warmup_epochs, cfg.selector.warmup_views) == ((20, "u0") if lit else (0, "u0"))
